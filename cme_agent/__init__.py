@@ -1,0 +1,9 @@
+"""cme_agent: model-based RL with online conditional mean embeddings and greedy feature selection
+(Lever, Stafford & Shawe-Taylor, 2014), with the stable-baselines3 interface."""
+
+from cme_agent.algorithm import CMEPolicyIteration
+from cme_agent.policy import CMEPolicy
+from cme_agent.rewards import KNOWN_REWARDS, RewardSpec, register_reward
+
+__all__ = ["KNOWN_REWARDS", "CMEPolicy", "CMEPolicyIteration", "RewardSpec", "register_reward"]
+__version__ = "0.1.0"

@@ -1,0 +1,486 @@
+"""CMEPolicyIteration: policy iteration with an online CME dynamics model (paper Algorithm 1).
+
+Each iteration of :meth:`CMEPolicyIteration.learn` is one pass of Algorithm 1:
+
+1. :meth:`~CMEPolicyIteration.data_acquisition` -- m env steps of the greedy policy mixed
+   with a noisy version of it, aggregated into the store D;
+2. :meth:`~CMEPolicyIteration.feature_selection` -- matching pursuit, eq. (5);
+3. :meth:`~CMEPolicyIteration.model_update` -- SGD on the regularised loss, eq. (6);
+4. ``evaluation.rounds`` times on a fresh collection C of states:
+   :meth:`~CMEPolicyIteration.policy_evaluation` (eq. (7)) and
+   :meth:`~CMEPolicyIteration.policy_improvement` (Q smoothing).
+
+Every step touches a fixed-size sample of D or only the m new transitions, so the cost of an
+iteration grows with q (the number of features), never with |D|.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import sys
+import time
+import warnings
+from collections.abc import Iterator
+from typing import Any, TypeVar
+
+import gymnasium as gym
+import numpy as np
+import torch
+from gymnasium import spaces
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
+from stable_baselines3.common.utils import safe_mean
+from stable_baselines3.common.vec_env import VecEnv
+
+from cme_agent.buffer import TransitionStore, Transitions
+from cme_agent.config import (
+    EvaluationConfig,
+    ExplorationConfig,
+    FeatureSelectionConfig,
+    ModelUpdateConfig,
+    build_config,
+    check,
+    check_positive_int,
+    check_unit_interval,
+)
+from cme_agent.dynamics import CMEModel, matching_pursuit, sgd_step
+from cme_agent.kernel_bank import gaussian_kernel
+from cme_agent.planning import bellman_residual_descent, bellman_residual_rms, bellman_residual_weights, lstd_weights, smooth
+from cme_agent.policy import CMEPolicy, _zero_reward
+from cme_agent.rewards import RewardSpec, StepReward, resolve_reward
+
+SelfCME = TypeVar("SelfCME", bound="CMEPolicyIteration")
+
+
+def _check_spaces(observation_space: spaces.Space, action_space: spaces.Space) -> None:
+    """Refuse, naming the space, what the agent cannot handle."""
+    if not (isinstance(observation_space, spaces.Box) and len(observation_space.shape) == 1):
+        raise ValueError(f"CMEPolicyIteration needs a 1-D Box observation space, got {observation_space}")
+    if not (isinstance(action_space, spaces.Discrete) or (isinstance(action_space, spaces.Box) and len(action_space.shape) == 1)):
+        raise ValueError(f"CMEPolicyIteration needs a Discrete or 1-D Box action space, got {action_space}")
+
+
+class CMEPolicyIteration(BaseAlgorithm):
+    """Policy iteration with an online conditional-mean-embedding model of the dynamics
+    (Lever, Stafford & Shawe-Taylor, 2014), with the stable-baselines3 interface.
+
+    :param policy: ``"CMEPolicy"`` or the class
+    :param env: the environment (a Gymnasium env, a VecEnv, or an env id)
+    :param gamma: discount factor in (0, 1)
+    :param omega: step of the Q smoothing Q_k = (1 - omega) Q_{k-1} + omega Q^_k, in (0, 1]
+    :param steps_per_iteration: m, env steps collected per iteration (all envs together)
+    :param feature_selection: matching pursuit settings (:class:`FeatureSelectionConfig` or dict)
+    :param model_update: SGD settings (:class:`ModelUpdateConfig` or dict)
+    :param evaluation: policy evaluation settings (:class:`EvaluationConfig` or dict)
+    :param exploration: behaviour policy settings (:class:`ExplorationConfig` or dict)
+    :param reward_fn: the reward r(s, a) as a :class:`RewardSpec` or a torch callable
+        ``(obs (N, obs_dim), action) -> (N,)``; default: the known reward of the env id, the
+        env's own ``reward_function``, or else a reward learned by regression on psi. Not saved
+        with the model: pass it again to ``load()``.
+    :param policy_kwargs: arguments of :class:`CMEPolicy` (phi, observation, action_search)
+    :param stats_window_size: episodes averaged in ``rollout/ep_rew_mean``
+    :param tensorboard_log: TensorBoard log folder (None: no TensorBoard)
+    :param verbose: 0 silent, 1 info
+    :param seed: seed of every random draw of the agent
+    :param device: torch device (``"auto"``: CUDA if available)
+    :param _init_setup_model: build the model at construction (False when loading)
+    """
+
+    policy_aliases = {"CMEPolicy": CMEPolicy}  # noqa: RUF012
+    policy: CMEPolicy
+
+    def __init__(
+        self,
+        policy: str | type[CMEPolicy],
+        env: GymEnv | str | None,
+        gamma: float = 0.98,
+        omega: float = 0.5,
+        steps_per_iteration: int = 200,
+        feature_selection: FeatureSelectionConfig | dict[str, Any] | None = None,
+        model_update: ModelUpdateConfig | dict[str, Any] | None = None,
+        evaluation: EvaluationConfig | dict[str, Any] | None = None,
+        exploration: ExplorationConfig | dict[str, Any] | None = None,
+        reward_fn: RewardSpec | StepReward | None = None,
+        policy_kwargs: dict[str, Any] | None = None,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: torch.device | str = "auto",
+        _init_setup_model: bool = True,
+    ) -> None:
+        check_unit_interval("gamma", gamma, open_low=True, open_high=True)
+        check_unit_interval("omega", omega, open_low=True)
+        check_positive_int("steps_per_iteration", steps_per_iteration)
+        self.feature_selection_config = build_config(FeatureSelectionConfig, feature_selection, "feature_selection")
+        self.model_update_config = build_config(ModelUpdateConfig, model_update, "model_update")
+        self.evaluation_config = build_config(EvaluationConfig, evaluation, "evaluation")
+        self.exploration_config = build_config(ExplorationConfig, exploration, "exploration")
+        super().__init__(
+            policy,
+            env,
+            learning_rate=self.model_update_config.learning_rate,
+            policy_kwargs=policy_kwargs,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            verbose=verbose,
+            device=device,
+            support_multi_env=True,
+            seed=seed,
+        )
+        self.gamma = gamma
+        self.omega = omega
+        self.steps_per_iteration = steps_per_iteration
+        self.reward_fn = reward_fn
+        self.iteration = 0
+        self.n_features = 0
+        self.model_step_scale = 1.0
+        self.env_id, self.env_kwargs = self._env_identity(self.env)
+        if self.env is not None:
+            _check_spaces(self.observation_space, self.action_space)
+        if _init_setup_model:
+            self._setup_model()
+
+    @staticmethod
+    def _env_identity(env: VecEnv | None) -> tuple[str | None, dict[str, Any]]:
+        """The registered id and make-kwargs of the env, to find its reward again after load()."""
+        spec = env.get_attr("spec", [0])[0] if env is not None else None
+        return (spec.id, dict(spec.kwargs)) if spec is not None else (None, {})
+
+    # ------------------------------------------------------------------ set-up
+    def _setup_model(self) -> None:
+        """Build the policy (phi, psi, Q weights), the model B, the stores and the RNGs."""
+        self._setup_lr_schedule()
+        seed = self.seed if self.seed is not None else int(np.random.SeedSequence().generate_state(1)[0])
+        self.set_random_seed(seed)
+        self._torch_rng = torch.Generator().manual_seed(seed)
+        self._np_rng = np.random.default_rng(seed)
+        kwargs = dict(self.policy_kwargs)
+        kwargs.setdefault("candidate_seed", seed)
+        self.policy_kwargs = kwargs
+        self.policy = self.policy_class(self.observation_space, self.action_space, n_features=self.n_features, **kwargs).to(self.device)
+        spec, self.reward_source = self._resolve_reward()
+        self.reward_spec = spec if spec is not None else RewardSpec(_zero_reward)
+        self.policy.reward_spec = self.reward_spec
+        self.model = CMEModel(
+            self.policy.phi.n_features, self.n_features, self.model_update_config.feature_dynamics, learn_reward=spec is None
+        ).to(self.device)
+        action_shape = () if isinstance(self.action_space, spaces.Discrete) else self.action_space.shape
+        obs_dim = self.observation_space.shape[0]
+        self.store = TransitionStore(obs_dim, action_shape, self.device)
+        self.holdout = TransitionStore(obs_dim, action_shape, self.device)
+        self._phase_seconds: dict[str, float] = {}
+
+    def _resolve_reward(self) -> tuple[RewardSpec | None, str]:
+        saved_source = getattr(self, "reward_source", None)
+        if saved_source == "user" and self.reward_fn is None:
+            raise ValueError("this model was trained with a user-supplied reward: pass reward_fn= to load()")
+        env = self.env.envs[0] if self.env is not None and hasattr(self.env, "envs") else None
+        if env is None and self.env_id is not None and saved_source == "env":
+            env = gym.make(self.env_id, **self.env_kwargs)
+        spec, source = resolve_reward(self.reward_fn, self.env_id, env)
+        if saved_source == "learned":
+            return None, "learned"
+        return spec, source
+
+    def _excluded_save_params(self) -> list[str]:
+        return [*super()._excluded_save_params(), "store", "holdout", "_torch_rng", "_np_rng", "reward_fn", "reward_spec", "_explore"]
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        return ["policy", "model"], []
+
+    # ------------------------------------------------------------------ Algorithm 1
+    def learn(
+        self: SelfCME,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 1,
+        tb_log_name: str = "CME",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfCME:
+        """Run Algorithm 1 until ``total_timesteps`` env steps have been taken.
+
+        :param total_timesteps: env steps to take (all envs together)
+        :param callback: called once per env step (``on_step``); training stops when it returns False
+        :param log_interval: iterations between log dumps
+        :param tb_log_name: name of the TensorBoard run
+        :param reset_num_timesteps: start counting from 0 (else continue the count)
+        :param progress_bar: show a progress bar (tqdm + rich)
+        :return: the trained agent
+        """
+        total_timesteps, callback = self._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+        callback.on_training_start(locals(), globals())
+        self._announce_reward()
+        self._explore = self._np_rng.random(self.n_envs) < self.exploration_config.explore_fraction
+        while self.num_timesteps < total_timesteps:
+            steps = min(self.steps_per_iteration, total_timesteps - self.num_timesteps)
+            new_data = self.data_acquisition(callback, math.ceil(steps / self.n_envs))
+            if new_data is None:
+                break
+            self.iteration += 1
+            self._phase_seconds = {}
+            self.feature_selection(new_data)
+            self.model_update()
+            for _ in range(self.evaluation_config.rounds):
+                collection = self.draw_collection()
+                value_weights = self.policy_evaluation(collection)
+                self.policy_improvement(value_weights)
+            if log_interval > 0 and self.iteration % log_interval == 0:
+                self.dump_logs()
+        callback.on_training_end()
+        return self
+
+    @contextlib.contextmanager
+    def _timed(self, phase: str) -> Iterator[None]:
+        """Add the wall-clock seconds of the block to ``time/<phase>`` of this iteration."""
+        start = time.perf_counter()
+        yield
+        self._phase_seconds[phase] = self._phase_seconds.get(phase, 0.0) + time.perf_counter() - start
+
+    def data_acquisition(self, callback: BaseCallback, n_steps: int) -> Transitions | None:
+        """Data acquisition: ``n_steps`` steps of every env with the behaviour policy; the
+        transitions are aggregated into D (a fraction is held out to measure the model).
+
+        :param callback: ``on_step`` is called once per env step
+        :param n_steps: steps per env
+        :return: the new training transitions, or None if the callback stopped training
+        """
+        start = len(self.store)
+        callback.on_rollout_start()
+        with self._timed("data_acquisition"):
+            for _ in range(n_steps):
+                actions = self._behaviour_actions(self._last_obs)
+                new_obs, rewards, dones, infos = self.env.step(actions)
+                self.num_timesteps += self.env.num_envs
+                self._store(self._last_obs, actions, rewards, new_obs, dones, infos)
+                callback.update_locals(locals())
+                if not callback.on_step():
+                    return None
+                self._update_info_buffer(infos, dones)
+                self._last_obs = new_obs
+                self._redraw_exploration(dones)
+        callback.on_rollout_end()
+        return self.store.get(slice(start, len(self.store)))
+
+    def _behaviour_actions(self, obs: np.ndarray) -> np.ndarray:
+        """Uniform random actions for the first ``random_steps`` steps; then the greedy action,
+        with Gaussian noise (Box) or epsilon-random actions (Discrete) in exploratory episodes."""
+        config = self.exploration_config
+        n = self.env.num_envs
+        space = self.action_space
+        if self.num_timesteps < config.random_steps:
+            if isinstance(space, spaces.Discrete):
+                return self._np_rng.integers(space.n, size=n)
+            return self._np_rng.uniform(space.low, space.high, size=(n, *space.shape)).astype(space.dtype)
+        actions, _ = self.policy.predict(obs, deterministic=True)
+        if isinstance(space, spaces.Discrete):
+            random_pick = self._explore & (self._np_rng.random(n) < config.epsilon)
+            return np.where(random_pick, self._np_rng.integers(space.n, size=n), actions)
+        noise = self._np_rng.normal(0.0, config.noise_std, size=actions.shape) * (space.high - space.low) / 2
+        return np.clip(actions + noise * self._explore[:, None], space.low, space.high).astype(space.dtype)
+
+    def _redraw_exploration(self, dones: np.ndarray) -> None:
+        """Decide afresh, for each env whose episode ended, whether its next episode explores."""
+        redraw = self._np_rng.random(len(dones)) < self.exploration_config.explore_fraction
+        self._explore = np.where(dones, redraw, self._explore)
+
+    def _store(self, obs: np.ndarray, actions: np.ndarray, rewards: np.ndarray, new_obs: np.ndarray, dones: np.ndarray, infos: list[dict[str, Any]]) -> None:
+        """Append one vector step to D (or the held-out store); the successor of a finished
+        episode is its true last observation, and a time-limit truncation is not a termination."""
+        next_obs = np.array(new_obs, dtype=np.float32, copy=True)
+        terminated = np.zeros(len(dones), dtype=bool)
+        for i, done in enumerate(dones):
+            if done:
+                next_obs[i] = infos[i]["terminal_observation"]
+                terminated[i] = not infos[i].get("TimeLimit.truncated", False)
+        for name, values in (("observation", next_obs), ("reward", rewards)):
+            bad = ~np.isfinite(np.asarray(values, dtype=np.float64).reshape(len(dones), -1)).all(axis=1)
+            if bad.any():
+                env_index = int(np.flatnonzero(bad)[0])
+                raise ValueError(
+                    f"the env returned a non-finite {name} at step {self.num_timesteps} (env {env_index}): "
+                    f"{np.asarray(values)[env_index]!r}; learning stopped before it reached the model"
+                )
+        held_out = self._np_rng.random(len(dones)) < self.model_update_config.holdout_fraction
+        for store, mask in ((self.store, ~held_out), (self.holdout, held_out)):
+            if mask.any():
+                store.add(obs[mask], actions[mask], rewards[mask], next_obs[mask], terminated[mask])
+
+    def _regression_data(self, batch: Transitions) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Normalised state-actions z (N, d), features psi (N, q) and targets y (N, p_out) of a batch."""
+        policy = self.policy
+        z = torch.cat([policy.obs_encoder.normalize(batch.obs), policy.action_encoder.encode(batch.actions)], dim=1)
+        psi = policy.psi(z[:, : policy.psi.state_dim], z[:, policy.psi.state_dim :])
+        targets = self.model.targets(policy.phi(batch.obs), policy.phi(batch.next_obs), batch.terminated, batch.rewards)
+        return z, psi, targets
+
+    def feature_selection(self, new_data: Transitions) -> int:
+        """Feature selection, eq. (5): matching pursuit on the model residual over a random
+        subsample of D (plus the new points), with a dictionary of Gaussian kernels centred at
+        the m new state-actions at every bandwidth; picked atoms join psi, their weights times
+        theta_k join B.
+
+        :param new_data: the transitions collected in this iteration (the dictionary's centres)
+        :return: the number of features added
+        """
+        config = self.feature_selection_config
+        with self._timed("feature_selection"):
+            if len(new_data) == 0:
+                return self._record_features_added(0)
+            subsample = self.store.sample(config.subsample_size, self._torch_rng)
+            batch = Transitions(*(torch.cat([a, b]) for a, b in zip(vars(new_data).values(), vars(subsample).values())))
+            if self.model.learn_reward and self.n_features == 0:
+                self.model.reward_scale.fill_(float(batch.rewards.std().clamp_min(1e-3)))
+            z, psi, targets = self._regression_data(batch)
+            residual = targets - self.model.predict(psi)
+            centres = z[: len(new_data)]
+            bandwidths = torch.tensor(config.bandwidths, dtype=z.dtype, device=z.device)
+            atoms = torch.cat([gaussian_kernel(z, centres, (1 / (2 * h**2)).expand(len(centres))) for h in bandwidths], dim=1)
+            result = matching_pursuit(atoms, residual, config.threshold, config.max_features, config.orthogonal)
+            picked = result.indices
+            self.policy.grow(centres[picked % len(centres)], bandwidths[picked // len(centres)])
+            self.model.append(config.theta * result.weights.T)
+            self.n_features = self.policy.n_features
+            if result.energy_before > 0:
+                self.logger.record("train/mp_residual_reduction", 1 - result.energy_after / result.energy_before)
+            return self._record_features_added(len(picked))
+
+    def _record_features_added(self, added: int) -> int:
+        self.logger.record("train/features_added", added)
+        self.logger.record("train/n_features", self.n_features)
+        return added
+
+    def model_update(self) -> None:
+        """Update the CME model, eq. (6): ``n_steps`` SGD steps on minibatches drawn from D.
+
+        A diverging update (non-finite B, or the loss on a check batch up tenfold) is undone,
+        the step size halved for the rest of the run, and a warning issued.
+        """
+        config = self.model_update_config
+        with self._timed("model_update"):
+            if self.n_features == 0:
+                return
+            _, check_psi, check_targets = self._regression_data(self.store.sample(config.batch_size * 4, self._torch_rng))
+            loss_before = float(self.model.loss(check_psi, check_targets))
+            backup = self.model.weights.clone()
+            learning_rate = config.learning_rate * self.model_step_scale
+            for _ in range(config.n_steps):
+                _, psi, targets = self._regression_data(self.store.sample(config.batch_size, self._torch_rng))
+                sgd_step(self.model.weights, psi, targets, learning_rate, config.l2)
+            loss_after = float(self.model.loss(check_psi, check_targets))
+            if not (math.isfinite(loss_after) and loss_after <= 10 * loss_before + 1e-8):
+                self.model.weights.copy_(backup)
+                self.model_step_scale /= 2
+                warnings.warn(
+                    f"model update diverged at iteration {self.iteration} (check loss {loss_before:.3g} -> {loss_after:.3g}); "
+                    f"update undone, step size halved to {config.learning_rate * self.model_step_scale:.3g}",
+                    RuntimeWarning,
+                    stacklevel=2,
+                )
+            self.logger.record("train/model_loss_train", loss_after)
+            self.logger.record("train/model_step_scale", self.model_step_scale)
+            if len(self.holdout) > 0:
+                _, psi, targets = self._regression_data(self.holdout.sample(config.holdout_size, self._torch_rng))
+                self.logger.record("train/model_loss", float(self.model.loss(psi, targets)))
+
+    def draw_collection(self) -> torch.Tensor:
+        """The collection C of eq. (7): ``collection_size`` states, a ``uniform_fraction`` of them
+        uniform over the normalisation box (terminal states excluded), the rest drawn from D.
+
+        :return: (|C|, obs_dim) states
+        """
+        config = self.evaluation_config
+        with self._timed("policy_evaluation"):
+            n_uniform = round(config.uniform_fraction * config.collection_size)
+            uniform = self.policy.obs_encoder.sample_uniform(2 * n_uniform, self._torch_rng)
+            if self.reward_spec.is_terminal is not None:
+                uniform = uniform[~self.reward_spec.is_terminal(uniform)]
+            uniform = uniform[:n_uniform]
+            from_data = self.store.sample(config.collection_size - len(uniform), self._torch_rng).obs
+            return torch.cat([uniform, from_data])
+
+    def expected_reward(self, obs: torch.Tensor, actions: torch.Tensor, psi: torch.Tensor) -> torch.Tensor:
+        """r(s, a) = step reward + terminal bonus * P_model(terminate | s, a) + learned reward: (N,)."""
+        reward = self.reward_spec.step_reward(obs, actions)
+        if self.reward_spec.terminal_bonus:
+            constant, weights = self.model.termination_weights()
+            reward = reward + self.reward_spec.terminal_bonus * (constant + psi @ weights)
+        if self.model.learn_reward:
+            reward = reward + psi @ self.model.reward_weights()
+        return reward
+
+    def policy_evaluation(self, states: torch.Tensor) -> torch.Tensor:
+        """Policy evaluation, eq. (7): value weights w of the current greedy policy on C, by
+        Bellman residual minimisation (or LSTD), exactly or by warm-started gradient descent.
+
+        :param states: (|C|, obs_dim) the collection C
+        :return: (p,) value weights w, V(s) = <w, phi(s)>
+        """
+        config = self.evaluation_config
+        with self._timed("policy_evaluation"):
+            actions, q_values = self.policy.greedy(states)
+            phi = self.policy.phi(states)
+            psi = self.policy.state_action_features(states, actions)
+            next_phi = self.model.expected_next_phi(phi, psi)
+            rewards = self.expected_reward(states, actions, psi)
+            if config.solver == "gd":
+                initial = getattr(self, "_value_weights", torch.zeros_like(phi[0]))
+                weights = bellman_residual_descent(phi, next_phi, rewards, self.gamma, config.l2, initial, config.gd_steps)
+            elif config.method == "lstd":
+                weights = lstd_weights(phi, next_phi, rewards, self.gamma, config.l2)
+            else:
+                weights = bellman_residual_weights(phi, next_phi, rewards, self.gamma, config.l2)
+            self._value_weights = weights
+            self.logger.record("train/bellman_residual", bellman_residual_rms(phi, next_phi, rewards, self.gamma, weights))
+            self.logger.record("train/q_mean", float(q_values.mean()))
+            self.logger.record("train/value_mean", float((phi @ weights).mean()))
+            return weights
+
+    def policy_improvement(self, value_weights: torch.Tensor) -> None:
+        """Policy improvement: Q_k = (1 - omega) Q_{k-1} + omega Q^_k, with
+        ``Q^_k(s, a) = r(s, a) + gamma <w_k, E_model[phi~(S') | s, a]>``, on the linear weights
+        of Q (zero-padded, no history); pi_{k+1} = greedy(Q_k) is then :meth:`CMEPolicy.greedy`.
+
+        :param value_weights: (p,) w_k from :meth:`policy_evaluation`
+        """
+        with self._timed("policy_improvement"):
+            model = self.model
+            theta_psi = self.gamma * model.phi_weights.T @ value_weights
+            theta_phi = self.gamma * value_weights if model.feature_dynamics else torch.zeros_like(value_weights)
+            if self.reward_spec.terminal_bonus:
+                constant, weights = model.termination_weights()
+                theta_psi = theta_psi + self.reward_spec.terminal_bonus * weights
+                theta_phi[-1] += self.reward_spec.terminal_bonus * constant
+            if model.learn_reward:
+                theta_psi = theta_psi + model.reward_weights()
+            self.policy.theta_phi = smooth(self.policy.theta_phi, theta_phi, self.omega)
+            self.policy.theta_psi = smooth(self.policy.theta_psi, theta_psi, self.omega)
+
+    # ------------------------------------------------------------------ logging
+    def _announce_reward(self) -> None:
+        if self.reward_source == "learned":
+            self.logger.info(
+                f"No reward function is known for env {self.env_id!r}: the reward is learned by regression on psi "
+                "(pass reward_fn= for a known one)."
+            )
+        elif self.verbose >= 1:
+            self.logger.info(f"Planning with the {self.reward_source} reward of env {self.env_id!r}.")
+
+    def dump_logs(self) -> None:
+        """Write SB3's rollout/time keys, our train/ keys and the seconds of each phase."""
+        time_elapsed = max((time.time_ns() - self.start_time) / 1e9, sys.float_info.epsilon)
+        fps = int((self.num_timesteps - self._num_timesteps_at_start) / time_elapsed)
+        self.logger.record("time/iterations", self.iteration, exclude="tensorboard")
+        if self.ep_info_buffer:
+            self.logger.record("rollout/ep_rew_mean", safe_mean([info["r"] for info in self.ep_info_buffer]))
+            self.logger.record("rollout/ep_len_mean", safe_mean([info["l"] for info in self.ep_info_buffer]))
+        self.logger.record("time/fps", fps)
+        self.logger.record("time/time_elapsed", int(time_elapsed), exclude="tensorboard")
+        self.logger.record("time/total_timesteps", self.num_timesteps, exclude="tensorboard")
+        for phase, seconds in self._phase_seconds.items():
+            self.logger.record(f"time/{phase}", seconds)
+        self.logger.record("train/transitions", len(self.store) + len(self.holdout))
+        self.logger.dump(step=self.num_timesteps)

@@ -1,0 +1,100 @@
+"""The aggregated transition store D of Algorithm 1.
+
+Transitions live in preallocated tensors whose capacity doubles when full, so appending is
+amortised O(1) and memory is linear in |D|. Every consumer reads a fixed-size random sample
+(:meth:`TransitionStore.sample`) or the newest block, never the whole store: the cost of an
+iteration does not grow with |D|.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+
+@dataclass
+class Transitions:
+    """A batch of transitions; N is the batch size.
+
+    :param obs: (N, obs_dim) states s
+    :param actions: (N, act_dim) Box actions, or (N,) Discrete action indices
+    :param rewards: (N,) rewards r
+    :param next_obs: (N, obs_dim) successor states s' (the true last state after a time limit)
+    :param terminated: (N,) True where s' is terminal (absorbing, value 0)
+    """
+
+    obs: torch.Tensor
+    actions: torch.Tensor
+    rewards: torch.Tensor
+    next_obs: torch.Tensor
+    terminated: torch.Tensor
+
+    def __len__(self) -> int:
+        return int(self.rewards.shape[0])
+
+
+class TransitionStore:
+    """Append-only store of transitions in doubling tensors.
+
+    :param obs_dim: observation dimension
+    :param action_shape: () for Discrete actions, (act_dim,) for Box actions
+    :param device: torch device of the tensors
+    :param capacity: initial capacity (doubled as needed)
+    """
+
+    _FIELDS = ("obs", "actions", "rewards", "next_obs", "terminated")
+
+    def __init__(self, obs_dim: int, action_shape: tuple[int, ...], device: torch.device | str = "cpu", capacity: int = 1024) -> None:
+        self.size = 0
+        action_dtype = torch.float32 if action_shape else torch.long
+        self._data = {
+            "obs": torch.empty(capacity, obs_dim, device=device),
+            "actions": torch.empty(capacity, *action_shape, dtype=action_dtype, device=device),
+            "rewards": torch.empty(capacity, device=device),
+            "next_obs": torch.empty(capacity, obs_dim, device=device),
+            "terminated": torch.empty(capacity, dtype=torch.bool, device=device),
+        }
+
+    def __len__(self) -> int:
+        return self.size
+
+    @property
+    def capacity(self) -> int:
+        """Number of transitions the tensors can hold before the next doubling."""
+        return int(self._data["rewards"].shape[0])
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes allocated by the store's tensors."""
+        return sum(t.element_size() * t.numel() for t in self._data.values())
+
+    def add(self, obs: np.ndarray, actions: np.ndarray, rewards: np.ndarray, next_obs: np.ndarray, terminated: np.ndarray) -> None:
+        """Append a batch of transitions (arrays with a leading batch dimension)."""
+        n = len(rewards)
+        if self.size + n > self.capacity:
+            self._grow(max(2 * self.capacity, self.size + n))
+        batch = dict(zip(self._FIELDS, (obs, actions, rewards, next_obs, terminated)))
+        for name, tensor in self._data.items():
+            tensor[self.size : self.size + n] = torch.as_tensor(np.asarray(batch[name]), dtype=tensor.dtype).reshape(n, *tensor.shape[1:])
+        self.size += n
+
+    def _grow(self, capacity: int) -> None:
+        for name, tensor in self._data.items():
+            grown = torch.empty(capacity, *tensor.shape[1:], dtype=tensor.dtype, device=tensor.device)
+            grown[: self.size] = tensor[: self.size]
+            self._data[name] = grown
+
+    def get(self, indices: torch.Tensor | slice) -> Transitions:
+        """The transitions at ``indices`` (a LongTensor or a slice within ``[0, len)``)."""
+        if isinstance(indices, slice):
+            indices = torch.arange(*indices.indices(self.size), device=self._data["rewards"].device)
+        return Transitions(**{name: tensor[indices] for name, tensor in self._data.items()})
+
+    def sample(self, n: int, generator: torch.Generator) -> Transitions:
+        """``n`` transitions drawn uniformly with replacement: O(n), whatever |D|."""
+        if self.size == 0:
+            raise RuntimeError("cannot sample from an empty transition store")
+        indices = torch.randint(self.size, (n,), generator=generator).to(self._data["rewards"].device)
+        return self.get(indices)

@@ -1,0 +1,303 @@
+"""Typed, validated hyperparameter groups of :class:`~cme_agent.CMEPolicyIteration`.
+
+Each group is a frozen dataclass that checks its values on construction, so a bad value fails
+when the agent is built, with an error that names the key, the value and the allowed range.
+The groups mirror ``conf/agent/cme.yaml``; plain dicts (from Hydra or Python) are converted by
+:func:`build_config`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, TypeVar
+
+ConfigT = TypeVar("ConfigT")
+
+
+def check(key: str, value: Any, ok: bool, allowed: str) -> None:
+    """Raise a ``ValueError`` naming ``key``, ``value`` and the allowed range unless ``ok``.
+
+    :param key: dotted name of the setting, as a user would write it (``evaluation.l2``)
+    :param value: the value given
+    :param ok: whether the value is acceptable
+    :param allowed: the allowed range, in words (``"in (0, 1)"``)
+    """
+    if not ok:
+        raise ValueError(f"{key}={value!r} is invalid: must be {allowed}")
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def check_positive(key: str, value: Any) -> None:
+    """Check that ``value`` is a finite number > 0."""
+    check(key, value, _is_number(value) and value > 0, "a finite number > 0")
+
+
+def check_positive_int(key: str, value: Any) -> None:
+    """Check that ``value`` is an integer >= 1."""
+    check(key, value, isinstance(value, int) and not isinstance(value, bool) and value >= 1, "an integer >= 1")
+
+
+def check_non_negative(key: str, value: Any) -> None:
+    """Check that ``value`` is a finite number >= 0."""
+    check(key, value, _is_number(value) and value >= 0, "a finite number >= 0")
+
+
+def check_unit_interval(key: str, value: Any, *, open_low: bool = False, open_high: bool = False) -> None:
+    """Check that ``value`` lies in the unit interval, with the ends open or closed as asked."""
+    low_ok = _is_number(value) and (value > 0 if open_low else value >= 0)
+    high_ok = _is_number(value) and (value < 1 if open_high else value <= 1)
+    allowed = f"in {'(' if open_low else '['}0, 1{')' if open_high else ']'}"
+    check(key, value, low_ok and high_ok, allowed)
+
+
+def check_choice(key: str, value: Any, choices: Sequence[str]) -> None:
+    """Check that ``value`` is one of ``choices``."""
+    check(key, value, value in choices, f"one of {list(choices)}")
+
+
+@dataclass(frozen=True)
+class FeatureSelectionConfig:
+    """Matching pursuit over a data-dependent kernel dictionary (paper eq. (5), section 2.2).
+
+    :param bandwidths: widths of the Gaussian kernels of the dictionary, in normalised
+        state-action units (each input dimension scaled to [-1, 1]); one atom per new point
+        and bandwidth
+    :param threshold: stop when the best atom removes less than this fraction of the
+        current residual energy
+    :param max_features: cap on the features added per iteration
+    :param subsample_size: size of the random subsample of D the residual is measured on
+    :param theta: step theta_k in [0, 1] applied to the new weights, B_k = (B_{k-1}, theta B_new)
+    :param orthogonal: refit the weights of the picked atoms jointly by least squares
+        (orthogonal matching pursuit) instead of keeping the greedy weights
+    """
+
+    bandwidths: tuple[float, ...] = (0.15, 0.3, 0.6)
+    threshold: float = 0.002
+    max_features: int = 80
+    subsample_size: int = 2000
+    theta: float = 1.0
+    orthogonal: bool = False
+
+    def __post_init__(self) -> None:
+        check("feature_selection.bandwidths", self.bandwidths, len(self.bandwidths) > 0, "a non-empty list")
+        for bandwidth in self.bandwidths:
+            check_positive("feature_selection.bandwidths", bandwidth)
+        check_unit_interval("feature_selection.threshold", self.threshold, open_low=True, open_high=True)
+        check_positive_int("feature_selection.max_features", self.max_features)
+        check_positive_int("feature_selection.subsample_size", self.subsample_size)
+        check_unit_interval("feature_selection.theta", self.theta, open_low=True)
+
+
+@dataclass(frozen=True)
+class ModelUpdateConfig:
+    """Stochastic gradient descent on the regularised model loss (paper eq. (6)).
+
+    :param n_steps: SGD steps per iteration (each on a minibatch drawn from D)
+    :param batch_size: transitions per minibatch
+    :param learning_rate: normalised step size in (0, 2): the step is
+        ``learning_rate / mean ||psi||^2`` (normalised least mean squares), stable for any q
+    :param l2: ridge coefficient lambda of eq. (6)
+    :param holdout_fraction: fraction of the collected transitions kept out of training, on
+        which ``train/model_loss`` is measured
+    :param holdout_size: held-out transitions sampled per iteration to measure the loss
+    :param feature_dynamics: regress phi(s') - phi(s) (section 2.3) instead of phi(s')
+    """
+
+    n_steps: int = 200
+    batch_size: int = 128
+    learning_rate: float = 0.5
+    l2: float = 1e-6
+    holdout_fraction: float = 0.1
+    holdout_size: int = 1000
+    feature_dynamics: bool = True
+
+    def __post_init__(self) -> None:
+        check_positive_int("model_update.n_steps", self.n_steps)
+        check_positive_int("model_update.batch_size", self.batch_size)
+        check(
+            "model_update.learning_rate",
+            self.learning_rate,
+            _is_number(self.learning_rate) and 0 < self.learning_rate < 2,
+            "in (0, 2)",
+        )
+        check_non_negative("model_update.l2", self.l2)
+        check_unit_interval("model_update.holdout_fraction", self.holdout_fraction, open_high=True)
+        check_positive_int("model_update.holdout_size", self.holdout_size)
+
+
+@dataclass(frozen=True)
+class EvaluationConfig:
+    """Policy evaluation on a fixed-size collection C of states (paper eq. (7)).
+
+    :param method: ``"bellman_residual"`` (eq. (7)) or ``"lstd"`` (the fixed point)
+    :param solver: ``"lstsq"`` (regularised least squares, exact) or ``"gd"`` (gradient
+        descent warm-started from the previous weights)
+    :param collection_size: number of states in C
+    :param uniform_fraction: fraction of C drawn uniformly over the state box; the rest is
+        drawn from the states in D
+    :param l2: ridge coefficient, relative to the mean diagonal of the normal equations
+    :param rounds: evaluation/improvement rounds per iteration on the same model
+    :param gd_steps: gradient steps per round when ``solver="gd"``
+    """
+
+    method: str = "bellman_residual"
+    solver: str = "lstsq"
+    collection_size: int = 2000
+    uniform_fraction: float = 0.5
+    l2: float = 1e-4
+    rounds: int = 5
+    gd_steps: int = 100
+
+    def __post_init__(self) -> None:
+        check_choice("evaluation.method", self.method, ("bellman_residual", "lstd"))
+        check_choice("evaluation.solver", self.solver, ("lstsq", "gd"))
+        check_positive_int("evaluation.collection_size", self.collection_size)
+        check_unit_interval("evaluation.uniform_fraction", self.uniform_fraction)
+        check_positive("evaluation.l2", self.l2)
+        check_positive_int("evaluation.rounds", self.rounds)
+        check_positive_int("evaluation.gd_steps", self.gd_steps)
+
+
+@dataclass(frozen=True)
+class ExplorationConfig:
+    """Behaviour policy of data acquisition: the greedy policy mixed with a noisy version.
+
+    :param random_steps: env steps of uniformly random actions before the first greedy ones
+    :param explore_fraction: probability that an episode is run with the exploratory policy
+    :param noise_std: Box actions: std of the Gaussian noise added in exploratory episodes,
+        as a fraction of the half-range of each action dimension
+    :param epsilon: Discrete actions: probability of a uniformly random action per step in
+        exploratory episodes
+    """
+
+    random_steps: int = 400
+    explore_fraction: float = 0.3
+    noise_std: float = 0.3
+    epsilon: float = 0.3
+
+    def __post_init__(self) -> None:
+        check("exploration.random_steps", self.random_steps, isinstance(self.random_steps, int) and self.random_steps >= 0, "an integer >= 0")
+        check_unit_interval("exploration.explore_fraction", self.explore_fraction)
+        check_non_negative("exploration.noise_std", self.noise_std)
+        check_unit_interval("exploration.epsilon", self.epsilon)
+
+
+@dataclass(frozen=True)
+class StateFeatureConfig:
+    """The state feature map phi on which values are linear, V(s) = <w, phi(s)>.
+
+    :param kind: ``"rbf_grid"`` (Gaussian bumps on a grid over the normalised observation;
+        angles periodic) or ``"fourier"`` (random Fourier features, for higher dimensions)
+    :param resolution: grid points per grid dimension (one int for all, or one per
+        dimension; an angle given as (cos, sin) is one periodic dimension)
+    :param width: RBF width in grid spacings
+    :param n_features: number of random Fourier features
+    :param bandwidth: length scale of the random Fourier features, in normalised units
+    """
+
+    kind: str = "rbf_grid"
+    resolution: tuple[int, ...] = (11,)
+    width: float = 1.0
+    n_features: int = 500
+    bandwidth: float = 0.3
+
+    def __post_init__(self) -> None:
+        check_choice("phi.kind", self.kind, ("rbf_grid", "fourier"))
+        check("phi.resolution", self.resolution, len(self.resolution) > 0, "a non-empty list")
+        for points in self.resolution:
+            check("phi.resolution", points, isinstance(points, int) and points >= 2, "integers >= 2")
+        check_positive("phi.width", self.width)
+        check_positive_int("phi.n_features", self.n_features)
+        check_positive("phi.bandwidth", self.bandwidth)
+
+
+@dataclass(frozen=True)
+class ActionSearchConfig:
+    """How greedy actions are found for Box action spaces (Discrete ones are enumerated).
+
+    :param grid_size: candidates per action dimension on a regular grid, used when the action
+        has at most ``max_grid_dims`` dimensions
+    :param max_grid_dims: largest action dimension searched on a grid
+    :param n_samples: uniformly sampled candidates (fixed at construction) in higher dimensions
+    :param refine_steps: projected gradient-ascent steps on Q through psi from the best candidate
+    :param refine_lr: step of the refinement, in normalised action units
+    """
+
+    grid_size: int = 21
+    max_grid_dims: int = 2
+    n_samples: int = 256
+    refine_steps: int = 0
+    refine_lr: float = 0.05
+
+    def __post_init__(self) -> None:
+        check("action_search.grid_size", self.grid_size, isinstance(self.grid_size, int) and self.grid_size >= 2, "an integer >= 2")
+        check_positive_int("action_search.max_grid_dims", self.max_grid_dims)
+        check_positive_int("action_search.n_samples", self.n_samples)
+        check("action_search.refine_steps", self.refine_steps, isinstance(self.refine_steps, int) and self.refine_steps >= 0, "an integer >= 0")
+        check_positive("action_search.refine_lr", self.refine_lr)
+
+
+@dataclass(frozen=True)
+class ObservationConfig:
+    """How observations are normalised to [-1, 1] per dimension.
+
+    :param low: lower bound per dimension (default: the observation space's, when finite)
+    :param high: upper bound per dimension (default: the observation space's, when finite)
+    :param angle_pairs: index pairs (i, j) of observation dims holding (cos, sin) of an angle;
+        phi treats each as one periodic dimension
+    """
+
+    low: tuple[float, ...] | None = None
+    high: tuple[float, ...] | None = None
+    angle_pairs: tuple[tuple[int, int], ...] = field(default_factory=tuple)
+
+    def __post_init__(self) -> None:
+        if self.low is not None and self.high is not None:
+            check("observation.low", self.low, len(self.low) == len(self.high), "as long as observation.high")
+            for lo, hi in zip(self.low, self.high):
+                check("observation.high", self.high, _is_number(lo) and _is_number(hi) and hi > lo, "finite and > observation.low")
+        for pair in self.angle_pairs:
+            check("observation.angle_pairs", self.angle_pairs, len(pair) == 2 and pair[0] != pair[1], "pairs of distinct indices")
+
+
+def _as_tuple(value: Any) -> Any:
+    """Lists (from YAML or OmegaConf) to tuples, recursively, so configs are hashable."""
+    if isinstance(value, (list, tuple)) or (hasattr(value, "__iter__") and type(value).__name__ == "ListConfig"):
+        return tuple(_as_tuple(item) for item in value)
+    return value
+
+
+def build_config(cls: type[ConfigT], value: ConfigT | Mapping[str, Any] | None, group: str) -> ConfigT:
+    """Build the dataclass ``cls`` from an instance, a mapping of its fields, or ``None``.
+
+    :param cls: the config dataclass
+    :param value: an instance (returned as is), a mapping (unknown keys refused), or None
+        (defaults)
+    :param group: the group's name, used in error messages
+    :return: the validated config
+    """
+    if value is None:
+        return cls()
+    if isinstance(value, cls):
+        return value
+    if not isinstance(value, Mapping) and type(value).__name__ != "DictConfig":
+        raise TypeError(f"{group} must be a mapping or a {cls.__name__}, got {type(value).__name__}")
+    names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(value.keys()) - names)
+    if unknown:
+        raise ValueError(f"{group} has unknown key(s) {unknown}; known keys: {sorted(names)}")
+    values = {key: _as_tuple(item) for key, item in value.items()}
+    if cls is StateFeatureConfig and isinstance(values.get("resolution"), int):
+        values["resolution"] = (values["resolution"],)
+    return cls(**values)
+
+
+def as_dict(config: Any) -> dict[str, Any]:
+    """A config dataclass as a plain dict of builtins (for saving and logging)."""
+    return dataclasses.asdict(config)

@@ -1,0 +1,25 @@
+"""Online refinement of B by stochastic gradient descent (paper eq. (6))."""
+
+from __future__ import annotations
+
+import torch
+
+
+def sgd_step(weights: torch.Tensor, psi: torch.Tensor, targets: torch.Tensor, learning_rate: float, l2: float) -> None:
+    """One minibatch step of eq. (6), in place:
+    ``B <- B + eta (1/b) sum_j (y_j - B psi_j) psi_j^T - eta lambda B``.
+
+    The step is normalised, ``eta = learning_rate / mean_j ||psi_j||^2`` (normalised least
+    mean squares): the largest eigenvalue of the minibatch Gram matrix is at most that mean,
+    so any ``learning_rate`` in (0, 2) is stable whatever the number q of features.
+
+    :param weights: (p, q) the model B, updated in place
+    :param psi: (b, q) features psi(s_j, a_j) of the minibatch
+    :param targets: (b, p) regression targets y_j (phi(s'_j), or phi(s'_j) - phi(s_j))
+    :param learning_rate: normalised step in (0, 2)
+    :param l2: ridge coefficient lambda
+    """
+    mean_sq_norm = (psi * psi).sum(1).mean().clamp_min(1e-12)
+    eta = learning_rate / mean_sq_norm
+    error = targets - psi @ weights.T
+    weights.mul_(1 - eta * l2).add_(error.T @ psi, alpha=float(eta) / psi.shape[0])

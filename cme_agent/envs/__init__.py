@@ -1,0 +1,16 @@
+"""Environments of cme_agent, registered with Gymnasium on import.
+
+``Quadcopter-v0``: :class:`cme_agent.envs.quadcopter.QuadcopterEnv`, the paper's
+simulated Pelican navigation task. It handles its own time limit (``time_limit``), so it
+is registered without ``max_episode_steps``.
+"""
+
+import gymnasium
+
+from cme_agent.envs.quadcopter import QuadcopterEnv, quadcopter_reward, quadcopter_termination
+from cme_agent.envs.quadcopter_controller import QuadcopterPController
+
+__all__ = ["QuadcopterEnv", "QuadcopterPController", "quadcopter_reward", "quadcopter_termination"]
+
+if "Quadcopter-v0" not in gymnasium.registry:
+    gymnasium.register(id="Quadcopter-v0", entry_point="cme_agent.envs.quadcopter:QuadcopterEnv")
