@@ -34,14 +34,13 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.utils import safe_mean
 from stable_baselines3.common.vec_env import VecEnv
 
-from cme_agent.buffer import TransitionStore, Transitions
+from cme_agent.buffer import Transitions, TransitionStore
 from cme_agent.config import (
     EvaluationConfig,
     ExplorationConfig,
     FeatureSelectionConfig,
     ModelUpdateConfig,
     build_config,
-    check,
     check_positive_int,
     check_unit_interval,
 )
@@ -58,7 +57,9 @@ def _check_spaces(observation_space: spaces.Space, action_space: spaces.Space) -
     """Refuse, naming the space, what the agent cannot handle."""
     if not (isinstance(observation_space, spaces.Box) and len(observation_space.shape) == 1):
         raise ValueError(f"CMEPolicyIteration needs a 1-D Box observation space, got {observation_space}")
-    if not (isinstance(action_space, spaces.Discrete) or (isinstance(action_space, spaces.Box) and len(action_space.shape) == 1)):
+    if not (
+        isinstance(action_space, spaces.Discrete) or (isinstance(action_space, spaces.Box) and len(action_space.shape) == 1)
+    ):
         raise ValueError(f"CMEPolicyIteration needs a Discrete or 1-D Box action space, got {action_space}")
 
 
@@ -160,7 +161,9 @@ class CMEPolicyIteration(BaseAlgorithm):
         kwargs = dict(self.policy_kwargs)
         kwargs.setdefault("candidate_seed", seed)
         self.policy_kwargs = kwargs
-        self.policy = self.policy_class(self.observation_space, self.action_space, n_features=self.n_features, **kwargs).to(self.device)
+        self.policy = self.policy_class(self.observation_space, self.action_space, n_features=self.n_features, **kwargs).to(
+            self.device
+        )
         spec, self.reward_source = self._resolve_reward()
         self.reward_spec = spec if spec is not None else RewardSpec(_zero_reward)
         self.policy.reward_spec = self.reward_spec
@@ -186,7 +189,16 @@ class CMEPolicyIteration(BaseAlgorithm):
         return spec, source
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "store", "holdout", "_torch_rng", "_np_rng", "reward_fn", "reward_spec", "_explore"]
+        return [
+            *super()._excluded_save_params(),
+            "store",
+            "holdout",
+            "_torch_rng",
+            "_np_rng",
+            "reward_fn",
+            "reward_spec",
+            "_explore",
+        ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         return ["policy", "model"], []
@@ -211,17 +223,19 @@ class CMEPolicyIteration(BaseAlgorithm):
         :param progress_bar: show a progress bar (tqdm + rich)
         :return: the trained agent
         """
-        total_timesteps, callback = self._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+        total_timesteps, callback = self._setup_learn(
+            total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar
+        )
         callback.on_training_start(locals(), globals())
         self._announce_reward()
         self._explore = self._np_rng.random(self.n_envs) < self.exploration_config.explore_fraction
         while self.num_timesteps < total_timesteps:
             steps = min(self.steps_per_iteration, total_timesteps - self.num_timesteps)
+            self._phase_seconds = {}
             new_data = self.data_acquisition(callback, math.ceil(steps / self.n_envs))
             if new_data is None:
                 break
             self.iteration += 1
-            self._phase_seconds = {}
             self.feature_selection(new_data)
             self.model_update()
             for _ in range(self.evaluation_config.rounds):
@@ -287,7 +301,15 @@ class CMEPolicyIteration(BaseAlgorithm):
         redraw = self._np_rng.random(len(dones)) < self.exploration_config.explore_fraction
         self._explore = np.where(dones, redraw, self._explore)
 
-    def _store(self, obs: np.ndarray, actions: np.ndarray, rewards: np.ndarray, new_obs: np.ndarray, dones: np.ndarray, infos: list[dict[str, Any]]) -> None:
+    def _store(
+        self,
+        obs: np.ndarray,
+        actions: np.ndarray,
+        rewards: np.ndarray,
+        new_obs: np.ndarray,
+        dones: np.ndarray,
+        infos: list[dict[str, Any]],
+    ) -> None:
         """Append one vector step to D (or the held-out store); the successor of a finished
         episode is its true last observation, and a time-limit truncation is not a termination."""
         next_obs = np.array(new_obs, dtype=np.float32, copy=True)
@@ -331,7 +353,7 @@ class CMEPolicyIteration(BaseAlgorithm):
             if len(new_data) == 0:
                 return self._record_features_added(0)
             subsample = self.store.sample(config.subsample_size, self._torch_rng)
-            batch = Transitions(*(torch.cat([a, b]) for a, b in zip(vars(new_data).values(), vars(subsample).values())))
+            batch = Transitions(*(torch.cat([a, b]) for a, b in zip(vars(new_data).values(), vars(subsample).values(), strict=True)))
             if self.model.learn_reward and self.n_features == 0:
                 self.model.reward_scale.fill_(float(batch.rewards.std().clamp_min(1e-3)))
             z, psi, targets = self._regression_data(batch)

@@ -46,7 +46,9 @@ class TransitionStore:
 
     _FIELDS = ("obs", "actions", "rewards", "next_obs", "terminated")
 
-    def __init__(self, obs_dim: int, action_shape: tuple[int, ...], device: torch.device | str = "cpu", capacity: int = 1024) -> None:
+    def __init__(
+        self, obs_dim: int, action_shape: tuple[int, ...], device: torch.device | str = "cpu", capacity: int = 1024
+    ) -> None:
         self.size = 0
         action_dtype = torch.float32 if action_shape else torch.long
         self._data = {
@@ -70,14 +72,18 @@ class TransitionStore:
         """Bytes allocated by the store's tensors."""
         return sum(t.element_size() * t.numel() for t in self._data.values())
 
-    def add(self, obs: np.ndarray, actions: np.ndarray, rewards: np.ndarray, next_obs: np.ndarray, terminated: np.ndarray) -> None:
+    def add(
+        self, obs: np.ndarray, actions: np.ndarray, rewards: np.ndarray, next_obs: np.ndarray, terminated: np.ndarray
+    ) -> None:
         """Append a batch of transitions (arrays with a leading batch dimension)."""
         n = len(rewards)
         if self.size + n > self.capacity:
             self._grow(max(2 * self.capacity, self.size + n))
-        batch = dict(zip(self._FIELDS, (obs, actions, rewards, next_obs, terminated)))
+        batch = dict(zip(self._FIELDS, (obs, actions, rewards, next_obs, terminated), strict=True))
         for name, tensor in self._data.items():
-            tensor[self.size : self.size + n] = torch.as_tensor(np.asarray(batch[name]), dtype=tensor.dtype).reshape(n, *tensor.shape[1:])
+            tensor[self.size : self.size + n] = torch.as_tensor(np.asarray(batch[name]), dtype=tensor.dtype).reshape(
+                n, *tensor.shape[1:]
+            )
         self.size += n
 
     def _grow(self, capacity: int) -> None:

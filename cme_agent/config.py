@@ -182,7 +182,12 @@ class ExplorationConfig:
     epsilon: float = 0.3
 
     def __post_init__(self) -> None:
-        check("exploration.random_steps", self.random_steps, isinstance(self.random_steps, int) and self.random_steps >= 0, "an integer >= 0")
+        check(
+            "exploration.random_steps",
+            self.random_steps,
+            isinstance(self.random_steps, int) and self.random_steps >= 0,
+            "an integer >= 0",
+        )
         check_unit_interval("exploration.explore_fraction", self.explore_fraction)
         check_non_negative("exploration.noise_std", self.noise_std)
         check_unit_interval("exploration.epsilon", self.epsilon)
@@ -236,10 +241,20 @@ class ActionSearchConfig:
     refine_lr: float = 0.05
 
     def __post_init__(self) -> None:
-        check("action_search.grid_size", self.grid_size, isinstance(self.grid_size, int) and self.grid_size >= 2, "an integer >= 2")
+        check(
+            "action_search.grid_size",
+            self.grid_size,
+            isinstance(self.grid_size, int) and self.grid_size >= 2,
+            "an integer >= 2",
+        )
         check_positive_int("action_search.max_grid_dims", self.max_grid_dims)
         check_positive_int("action_search.n_samples", self.n_samples)
-        check("action_search.refine_steps", self.refine_steps, isinstance(self.refine_steps, int) and self.refine_steps >= 0, "an integer >= 0")
+        check(
+            "action_search.refine_steps",
+            self.refine_steps,
+            isinstance(self.refine_steps, int) and self.refine_steps >= 0,
+            "an integer >= 0",
+        )
         check_positive("action_search.refine_lr", self.refine_lr)
 
 
@@ -260,10 +275,17 @@ class ObservationConfig:
     def __post_init__(self) -> None:
         if self.low is not None and self.high is not None:
             check("observation.low", self.low, len(self.low) == len(self.high), "as long as observation.high")
-            for lo, hi in zip(self.low, self.high):
-                check("observation.high", self.high, _is_number(lo) and _is_number(hi) and hi > lo, "finite and > observation.low")
+            for lo, hi in zip(self.low, self.high, strict=True):
+                check(
+                    "observation.high",
+                    self.high,
+                    _is_number(lo) and _is_number(hi) and hi > lo,
+                    "finite and > observation.low",
+                )
         for pair in self.angle_pairs:
-            check("observation.angle_pairs", self.angle_pairs, len(pair) == 2 and pair[0] != pair[1], "pairs of distinct indices")
+            check(
+                "observation.angle_pairs", self.angle_pairs, len(pair) == 2 and pair[0] != pair[1], "pairs of distinct indices"
+            )
 
 
 def _as_tuple(value: Any) -> Any:

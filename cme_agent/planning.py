@@ -16,7 +16,9 @@ def _regularised_solve(lhs: torch.Tensor, rhs: torch.Tensor, l2: float) -> torch
     return torch.linalg.solve(lhs + l2 * scale * eye, rhs)
 
 
-def bellman_residual_weights(phi: torch.Tensor, next_phi: torch.Tensor, rewards: torch.Tensor, gamma: float, l2: float) -> torch.Tensor:
+def bellman_residual_weights(
+    phi: torch.Tensor, next_phi: torch.Tensor, rewards: torch.Tensor, gamma: float, l2: float
+) -> torch.Tensor:
     """Bellman residual minimisation, eq. (7):
     ``w = argmin_w ||Phi_C w - (r + gamma Phi'_C w)||^2 + ridge``, solved exactly.
 
@@ -41,7 +43,13 @@ def lstd_weights(phi: torch.Tensor, next_phi: torch.Tensor, rewards: torch.Tenso
 
 
 def bellman_residual_descent(
-    phi: torch.Tensor, next_phi: torch.Tensor, rewards: torch.Tensor, gamma: float, l2: float, initial: torch.Tensor, steps: int
+    phi: torch.Tensor,
+    next_phi: torch.Tensor,
+    rewards: torch.Tensor,
+    gamma: float,
+    l2: float,
+    initial: torch.Tensor,
+    steps: int,
 ) -> torch.Tensor:
     """Eq. (7) by gradient descent warm-started from the previous weights:
     O(|C| p^2 + steps p^2), as in the paper's complexity statement.
@@ -69,7 +77,9 @@ def bellman_residual_descent(
     return w.to(phi.dtype)
 
 
-def bellman_residual_rms(phi: torch.Tensor, next_phi: torch.Tensor, rewards: torch.Tensor, gamma: float, w: torch.Tensor) -> float:
+def bellman_residual_rms(
+    phi: torch.Tensor, next_phi: torch.Tensor, rewards: torch.Tensor, gamma: float, w: torch.Tensor
+) -> float:
     """Root-mean-square Bellman residual of w over C under the model, ``||Phi w - r - gamma Phi' w|| / sqrt(n)``."""
     return float(((phi - gamma * next_phi) @ w - rewards).pow(2).mean().sqrt())
 

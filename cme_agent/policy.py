@@ -114,12 +114,18 @@ class CMEPolicy(BasePolicy):
 
     def q_values(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """Q_k at paired states and actions: (N, obs_dim), (N, ...) -> (N,)."""
-        return self.step_reward(obs, actions) + self.phi(obs) @ self.theta_phi + self.state_action_features(obs, actions) @ self.theta_psi
+        return (
+            self.step_reward(obs, actions)
+            + self.phi(obs) @ self.theta_phi
+            + self.state_action_features(obs, actions) @ self.theta_psi
+        )
 
     def candidate_q_values(self, obs: torch.Tensor) -> torch.Tensor:
         """Q_k at every candidate action: (N, obs_dim) -> (N, K), one (N, q) x (q, K) product."""
         n, k = obs.shape[0], self.candidates.shape[0]
-        state_part, action_part = self.psi.factors(self.obs_encoder.normalize(obs), self.action_encoder.encode(self.candidates))
+        state_part, action_part = self.psi.factors(
+            self.obs_encoder.normalize(obs), self.action_encoder.encode(self.candidates)
+        )
         kernel_term = (state_part * self.theta_psi) @ action_part.T
         pairs_obs = obs.repeat_interleave(k, dim=0)
         pairs_actions = self.candidates.repeat(n, *([1] * (self.candidates.ndim - 1)))

@@ -16,6 +16,9 @@ from torch import nn
 from cme_agent.config import StateFeatureConfig
 from cme_agent.encoding import ObservationEncoder
 
+MAX_GRID_FEATURES = 50_000
+"""Largest RBF grid accepted; beyond it, phi.kind=fourier is the tool."""
+
 
 class RBFGrid(nn.Module):
     """Gaussian radial basis functions on a regular grid over the grid coordinates of the encoder.
@@ -34,11 +37,18 @@ class RBFGrid(nn.Module):
         if len(resolution) == 1:
             resolution = resolution * n_dims
         if len(resolution) != n_dims:
-            raise ValueError(f"phi.resolution has {len(resolution)} entries but phi's grid has {n_dims} dims (angles count once)")
+            raise ValueError(
+                f"phi.resolution has {len(resolution)} entries but phi's grid has {n_dims} dims (angles count once)"
+            )
+        if math.prod(resolution) > MAX_GRID_FEATURES:
+            raise ValueError(
+                f"phi.resolution={list(resolution)} makes a grid of {math.prod(resolution):,} features over {n_dims} dims "
+                f"(limit {MAX_GRID_FEATURES:,}): use phi.kind=fourier for high-dimensional observations"
+            )
         self.encoder = encoder
         self.resolution = tuple(resolution)
         self.periodic = encoder.periodic
-        for dim, (points, periodic) in enumerate(zip(resolution, self.periodic)):
+        for dim, (points, periodic) in enumerate(zip(resolution, self.periodic, strict=True)):
             centres = torch.arange(points) * (2 / points) - 1 if periodic else torch.linspace(-1, 1, points)
             spacing = 2 / points if periodic else 2 / (points - 1)
             self.register_buffer(f"centres_{dim}", centres.float())

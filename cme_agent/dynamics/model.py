@@ -35,7 +35,9 @@ class CMEModel(nn.Module):
         """(p, q): the rows of B that predict phi."""
         return self.weights[: self.n_state_features]
 
-    def targets(self, phi: torch.Tensor, next_phi: torch.Tensor, terminated: torch.Tensor, rewards: torch.Tensor) -> torch.Tensor:
+    def targets(
+        self, phi: torch.Tensor, next_phi: torch.Tensor, terminated: torch.Tensor, rewards: torch.Tensor
+    ) -> torch.Tensor:
         """Regression targets of a batch.
 
         :param phi: (N, p) phi(s)

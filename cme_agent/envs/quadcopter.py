@@ -64,7 +64,10 @@ def quadcopter_termination(
 
 def _vector3(value: ArrayLike3, name: str) -> np.ndarray:
     """A finite 3-vector as a float64 array, or a ValueError naming ``name``."""
-    vector = np.array(value, dtype=np.float64)
+    try:
+        vector = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"{name} must be 3 finite numbers, got {value!r}") from error
     if vector.shape != (3,) or not np.all(np.isfinite(vector)):
         raise ValueError(f"{name} must be 3 finite numbers, got {value!r}")
     return vector
@@ -116,7 +119,8 @@ class QuadcopterEnv(gym.Env[np.ndarray, np.ndarray]):
     :param render_size: height of the rendered image (pixels); its width is twice that.
     """
 
-    metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 10}
+    # Gymnasium's class attribute; __init__ replaces it with a copy whose fps is 1 / agent_dt.
+    metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 10}  # noqa: RUF012
 
     def __init__(
         self,
@@ -161,9 +165,7 @@ class QuadcopterEnv(gym.Env[np.ndarray, np.ndarray]):
             [math.pi] * 3 + [OBSERVATION_MAX_SPEED] * 3 + [OBSERVATION_MAX_RATE] * 3
         )  # angles, body velocities, body rates
         self._obs_low = np.concatenate([position_low, -limits, [0.0]]).astype(np.float32)
-        self._obs_high = np.concatenate(
-            [position_high, limits, [OBSERVATION_MAX_THRUST]]
-        ).astype(np.float32)
+        self._obs_high = np.concatenate([position_high, limits, [OBSERVATION_MAX_THRUST]]).astype(np.float32)
         self.observation_space = spaces.Box(self._obs_low, self._obs_high, dtype=np.float32)
         self.action_space = spaces.Box(-1.0, 1.0, shape=(3,), dtype=np.float32)
 
@@ -194,9 +196,7 @@ class QuadcopterEnv(gym.Env[np.ndarray, np.ndarray]):
         low, high = self.bounding_box_low, self._allowed_high
         if np.any(self.target < low) or np.any(self.target > high):
             raise ValueError("target must lie in the bounding box, at altitude >= 0")
-        if np.any(self.start - self.start_radius <= low) or np.any(
-            self.start + self.start_radius >= high
-        ):
+        if np.any(self.start - self.start_radius <= low) or np.any(self.start + self.start_radius >= high):
             raise ValueError("start +- start_radius must lie in the bounding box, above ground")
         if self.render_mode is not None and self.render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None")
@@ -224,9 +224,7 @@ class QuadcopterEnv(gym.Env[np.ndarray, np.ndarray]):
         high = torch.as_tensor(self.bounding_box_high, device=obs.device)
         return quadcopter_termination(position, low, high)
 
-    def reset(
-        self, *, seed: int | None = None, options: dict[str, Any] | None = None
-    ) -> tuple[np.ndarray, dict[str, Any]]:
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
         """Start hovering at a random point of the start ball.
 
         :param seed: seed of ``self.np_random`` (start point and process noise).
@@ -270,9 +268,7 @@ class QuadcopterEnv(gym.Env[np.ndarray, np.ndarray]):
         self._steps += 1
         self._obs = self._observe()
         self._trail.append(state[:3])
-        terminated = bool(
-            quadcopter_termination(self._obs[:3], self.bounding_box_low, self.bounding_box_high)
-        )
+        terminated = bool(quadcopter_termination(self._obs[:3], self.bounding_box_low, self.bounding_box_high))
         truncated = self._steps >= self.max_episode_steps
         if self.render_mode == "human":
             self.render()
@@ -322,10 +318,8 @@ class QuadcopterEnv(gym.Env[np.ndarray, np.ndarray]):
         try:
             import pygame
         except ImportError as error:
-            raise gym.error.DependencyNotInstalled(
-                'render_mode="human" needs pygame: run `pip install pygame`'
-            ) from error
-        if self._window is None:
+            raise gym.error.DependencyNotInstalled('render_mode="human" needs pygame: run `pip install pygame`') from error
+        if self._window is None or not pygame.display.get_init():  # another env may have quit pygame
             pygame.init()
             pygame.display.set_caption("Quadcopter-v0")
             self._window = pygame.display.set_mode((frame.shape[1], frame.shape[0]))

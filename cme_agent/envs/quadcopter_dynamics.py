@@ -68,9 +68,7 @@ def _clip(value: float, low: float, high: float) -> float:
     return low if value < low else high if value > high else value
 
 
-def _dcm(
-    sph: float, cph: float, sth: float, cth: float, sps: float, cps: float
-) -> tuple[float, ...]:
+def _dcm(sph: float, cph: float, sth: float, cth: float, sps: float, cps: float) -> tuple[float, ...]:
     """World -> body rotation D from the sines and cosines of roll, pitch and yaw.
 
     :return: the 9 entries of D, row by row.
@@ -96,9 +94,7 @@ def rotation_elements(phi: float, theta: float, psi: float) -> tuple[float, ...]
     :param psi: yaw (rad).
     :return: the 9 entries of D, row by row: ``v_body = D @ v_world``.
     """
-    return _dcm(
-        math.sin(phi), math.cos(phi), math.sin(theta), math.cos(theta), math.sin(psi), math.cos(psi)
-    )
+    return _dcm(math.sin(phi), math.cos(phi), math.sin(theta), math.cos(theta), math.sin(psi), math.cos(psi))
 
 
 def rotation_matrix(phi: float, theta: float, psi: float) -> np.ndarray:
@@ -112,9 +108,7 @@ def rotation_matrix(phi: float, theta: float, psi: float) -> np.ndarray:
     return np.array(rotation_elements(phi, theta, psi)).reshape(3, 3)
 
 
-def autopilot_commands(
-    pitch: float, roll: float, throttle: float, yaw_rate: float
-) -> tuple[float, float, float, float]:
+def autopilot_commands(pitch: float, roll: float, throttle: float, yaw_rate: float) -> tuple[float, float, float, float]:
     """Clip airframe commands to their limits and scale them to autopilot units.
 
     Section "Airframe commands".
@@ -135,9 +129,7 @@ def autopilot_commands(
 
 def _limited_rate_derivative(rate: float, derivative: float) -> float:
     """Zero an angular acceleration that would push ``|rate|`` further past the limit."""
-    if (rate > MAX_ANGULAR_RATE and derivative > 0.0) or (
-        rate < -MAX_ANGULAR_RATE and derivative < 0.0
-    ):
+    if (rate > MAX_ANGULAR_RATE and derivative > 0.0) or (rate < -MAX_ANGULAR_RATE and derivative < 0.0):
         return 0.0
     return derivative
 
@@ -183,9 +175,7 @@ def state_derivative(
     sph, cph = math.sin(phi), math.cos(phi)
     sth, cth = math.sin(theta), math.cos(theta)
     tth = sth / cth
-    d11, d12, d13, d21, d22, d23, d31, d32, d33 = _dcm(
-        sph, cph, sth, cth, math.sin(psi), math.cos(psi)
-    )
+    d11, d12, d13, d21, d22, d23, d31, d32, d33 = _dcm(sph, cph, sth, cth, math.sin(psi), math.cos(psi))
     thrust_dot = thrust_derivative(thrust, throttle_u, dt)
     wind_u = d11 * wind[0] + d12 * wind[1] + d13 * wind[2]
     wind_v = d21 * wind[0] + d22 * wind[1] + d23 * wind[2]
@@ -228,10 +218,10 @@ def rk2_step(
     :return: the state after ``dt``, 13 floats.
     """
     start = state_derivative(state, commands, wind, noise, dt)
-    euler = [x + dt * dx for x, dx in zip(state, start)]
+    euler = [x + dt * dx for x, dx in zip(state, start, strict=True)]
     end = state_derivative(euler, commands, wind, noise, dt)
     half_dt = 0.5 * dt
-    return tuple([x + half_dt * (dx0 + dx1) for x, dx0, dx1 in zip(state, start, end)])
+    return tuple([x + half_dt * (dx0 + dx1) for x, dx0, dx1 in zip(state, start, end, strict=True)])
 
 
 def hover_state(position: Sequence[float]) -> State:
@@ -265,9 +255,7 @@ class VelocityPID:
         self._previous_error = (0.0, 0.0)  # x and y; the throttle has no derivative term
         self._setpoint = (0.0, 0.0, 0.0)
 
-    def __call__(
-        self, state: Sequence[float], desired_velocity: Sequence[float]
-    ) -> tuple[float, float, float, float]:
+    def __call__(self, state: Sequence[float], desired_velocity: Sequence[float]) -> tuple[float, float, float, float]:
         """One controller update.
 
         :param state: the current state, 13 floats.

@@ -20,7 +20,7 @@ TRAIL: Color = (80, 120, 220)
 CRAFT: Color = (30, 30, 30)
 NOSE: Color = (220, 40, 40)
 ARM_LENGTH = 0.3  # m, drawn at least MIN_ARM_PIXELS long
-MIN_ARM_PIXELS = 6.0
+MIN_ARM_PIXELS = 8.0
 PADDING = 10  # pixels around each view
 
 
@@ -64,9 +64,11 @@ def fill_disc(image: np.ndarray, centre: np.ndarray, radius: float, color: Color
     :param radius: radius (pixels).
     :param color: RGB colour.
     """
-    rows, columns = np.ogrid[: image.shape[0], : image.shape[1]]
+    top, bottom = max(int(centre[1] - radius), 0), min(int(centre[1] + radius) + 2, image.shape[0])
+    left, right = max(int(centre[0] - radius), 0), min(int(centre[0] + radius) + 2, image.shape[1])
+    rows, columns = np.ogrid[top:bottom, left:right]
     inside = (columns - centre[0]) ** 2 + (rows - centre[1]) ** 2 <= radius**2
-    image[inside] = color
+    image[top:bottom, left:right][inside] = color
 
 
 def draw_circle(image: np.ndarray, centre: np.ndarray, radius: float, color: Color) -> None:
@@ -82,9 +84,8 @@ def draw_circle(image: np.ndarray, centre: np.ndarray, radius: float, color: Col
 
 
 class View:
-    """An orthographic view of NED space onto a square panel of the image.
+    """An orthographic view of NED space onto a square panel, in the panel's pixels.
 
-    :param column: first image column of the panel.
     :param size: side of the panel (pixels).
     :param axes: NED axes ``(horizontal, vertical)`` shown, 0 = north, 1 = east, 2 = down.
     :param signs: sign of each shown axis (+1 or -1; -1 on axis 2 shows altitude).
@@ -94,7 +95,6 @@ class View:
 
     def __init__(
         self,
-        column: int,
         size: int,
         axes: tuple[int, int],
         signs: tuple[float, float],
@@ -106,7 +106,7 @@ class View:
         self.minimum, maximum = corners.min(axis=0), corners.max(axis=0)
         self.scale = (size - 2 * PADDING) / (maximum - self.minimum).max()  # pixels per m
         margin = (size - self.scale * (maximum - self.minimum)) / 2.0
-        self.origin = np.array([column + margin[0], size - margin[1]])
+        self.origin = np.array([margin[0], size - margin[1]])
 
     def pixels(self, points: np.ndarray) -> np.ndarray:
         """Project NED points (m), shape ``(K, 3)``, to pixels ``(column, row)``, ``(K, 2)``."""
@@ -132,7 +132,7 @@ def _draw_view(
     low: np.ndarray,
     high: np.ndarray,
 ) -> None:
-    """Draw the box, the target, the trail and the craft in one view (see render_frame)."""
+    """Draw the box, the target, the trail and the craft on one view's panel (see render_frame)."""
     draw_polyline(image, view.rectangle(low, high), BOX)
     centre = view.pixels(target[None])[0]
     draw_circle(image, centre, sigma * view.scale, TARGET)
@@ -174,13 +174,14 @@ def render_frame(
     :return: the image, uint8, shape ``(height, 2 * height, 3)``.
     """
     image = np.full((height, 2 * height, 3), BACKGROUND, dtype=np.uint8)
-    ground_low, ground_high = low.copy(), high.copy()
-    ground_high[2] = max(high[2], 0.0)
-    top = View(0, height, (1, 0), (1.0, 1.0), low, high)
-    side = View(height, height, (0, 2), (1.0, -1.0), ground_low, ground_high)
+    above_ground = high.copy()  # the side view shows the ground even if the box ends higher
+    above_ground[2] = max(high[2], 0.0)
+    top_panel, side_panel = image[:, :height], image[:, height:]  # views into image
+    top = View(height, (1, 0), (1.0, 1.0), low, high)
+    side = View(height, (0, 2), (1.0, -1.0), low, above_ground)
     ground = np.array([[low[0], 0.0, 0.0], [high[0], 0.0, 0.0]])
-    draw_polyline(image, side.pixels(ground), GROUND, width=2)
-    for view in (top, side):
-        _draw_view(image, view, trail, attitude, target, sigma, low, high)
+    draw_polyline(side_panel, side.pixels(ground), GROUND, width=2)
+    for panel, view in ((top_panel, top), (side_panel, side)):
+        _draw_view(panel, view, trail, attitude, target, sigma, low, high)
     image[:, height - 1 : height + 1] = BOX
     return image

@@ -1,0 +1,37 @@
+"""Shared fixtures: small agent settings that keep each learn() call to a second or two."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+
+PENDULUM_POLICY = {"phi": {"resolution": [9, 7]}, "observation": {"angle_pairs": [[0, 1]]}}
+CARTPOLE_POLICY = {
+    "phi": {"resolution": [3, 3, 5, 5]},
+    "observation": {"low": [-2.4, -3.0, -0.21, -3.5], "high": [2.4, 3.0, 0.21, 3.5]},
+}
+
+
+def small_kwargs(**overrides: Any) -> dict[str, Any]:
+    """Agent arguments for quick tests: few steps per iteration, small samples."""
+    kwargs: dict[str, Any] = {
+        "steps_per_iteration": 100,
+        "feature_selection": {"subsample_size": 300, "max_features": 20},
+        "model_update": {"n_steps": 20, "batch_size": 64, "holdout_size": 100},
+        "evaluation": {"collection_size": 300, "rounds": 2},
+        "exploration": {"random_steps": 100},
+        "policy_kwargs": PENDULUM_POLICY,
+    }
+    kwargs.update(overrides)
+    return kwargs
+
+
+@pytest.fixture
+def pendulum_kwargs() -> dict[str, Any]:
+    return small_kwargs()
+
+
+@pytest.fixture
+def cartpole_kwargs() -> dict[str, Any]:
+    return small_kwargs(policy_kwargs=CARTPOLE_POLICY)

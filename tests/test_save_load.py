@@ -1,0 +1,48 @@
+"""save() -> load() after the feature bank has grown."""
+
+import numpy as np
+import pytest
+
+from cme_agent import CMEPolicyIteration
+
+
+def test_save_load_after_growth_gives_identical_actions(tmp_path, pendulum_kwargs):
+    model = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=0, **pendulum_kwargs)
+    model.learn(400)
+    assert model.n_features > 0
+    path = tmp_path / "pendulum_cme.zip"
+    model.save(path)
+    loaded = CMEPolicyIteration.load(path)
+    assert loaded.n_features == model.n_features
+    rng = np.random.default_rng(0)
+    angles = rng.uniform(-np.pi, np.pi, 64)
+    obs = np.stack([np.cos(angles), np.sin(angles), rng.uniform(-8, 8, 64)], 1).astype(np.float32)
+    expected, _ = model.predict(obs, deterministic=True)
+    actual, _ = loaded.predict(obs, deterministic=True)
+    np.testing.assert_array_equal(actual, expected)
+    for name in ("theta_psi", "theta_phi"):
+        np.testing.assert_array_equal(getattr(loaded.policy, name).numpy(), getattr(model.policy, name).numpy())
+    np.testing.assert_array_equal(loaded.model.weights.numpy(), model.model.weights.numpy())
+
+
+def test_loaded_model_keeps_learning(tmp_path, pendulum_kwargs):
+    model = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=0, **pendulum_kwargs)
+    model.learn(200)
+    model.save(tmp_path / "m.zip")
+    loaded = CMEPolicyIteration.load(tmp_path / "m.zip", env=model.get_env())
+    before = loaded.n_features
+    loaded.learn(200, reset_num_timesteps=False)
+    assert loaded.num_timesteps == 400
+    assert loaded.n_features >= before
+    assert loaded.model.weights.shape[1] == loaded.policy.theta_psi.shape[0] == loaded.n_features
+
+
+def test_user_reward_must_be_given_again(tmp_path, pendulum_kwargs):
+    from cme_agent.rewards import KNOWN_REWARDS
+
+    reward = KNOWN_REWARDS["Pendulum-v1"].step_reward
+    model = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", reward_fn=reward, **pendulum_kwargs)
+    model.save(tmp_path / "m.zip")
+    with pytest.raises(ValueError, match="reward_fn"):
+        CMEPolicyIteration.load(tmp_path / "m.zip")
+    assert CMEPolicyIteration.load(tmp_path / "m.zip", reward_fn=reward).reward_source == "user"
