@@ -3,8 +3,9 @@
 
 from cme_agent import envs  # noqa: F401  (registers Quadcopter-v0)
 from cme_agent.algorithm import CMEPolicyIteration
+from cme_agent.kernel_baseline import KernelPolicyIteration
 from cme_agent.policy import CMEPolicy
 from cme_agent.rewards import KNOWN_REWARDS, RewardSpec, register_reward
 
-__all__ = ["KNOWN_REWARDS", "CMEPolicy", "CMEPolicyIteration", "RewardSpec", "register_reward"]
+__all__ = ["KNOWN_REWARDS", "CMEPolicy", "CMEPolicyIteration", "KernelPolicyIteration", "RewardSpec", "register_reward"]
 __version__ = "0.1.0"

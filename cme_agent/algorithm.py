@@ -353,7 +353,7 @@ class CMEPolicyIteration(BaseAlgorithm):
             if len(new_data) == 0:
                 return self._record_features_added(0)
             subsample = self.store.sample(config.subsample_size, self._torch_rng)
-            batch = Transitions(*(torch.cat([a, b]) for a, b in zip(vars(new_data).values(), vars(subsample).values(), strict=True)))
+            batch = new_data.concat(subsample)
             if self.model.learn_reward and self.n_features == 0:
                 self.model.reward_scale.fill_(float(batch.rewards.std().clamp_min(1e-3)))
             z, psi, targets = self._regression_data(batch)
@@ -404,9 +404,14 @@ class CMEPolicyIteration(BaseAlgorithm):
                 )
             self.logger.record("train/model_loss_train", loss_after)
             self.logger.record("train/model_step_scale", self.model_step_scale)
-            if len(self.holdout) > 0:
-                _, psi, targets = self._regression_data(self.holdout.sample(config.holdout_size, self._torch_rng))
-                self.logger.record("train/model_loss", float(self.model.loss(psi, targets)))
+            self._record_holdout_loss()
+
+    def _record_holdout_loss(self) -> None:
+        """Log ``train/model_loss``: the model's mean squared error on held-out transitions."""
+        if len(self.holdout) > 0:
+            sample = self.holdout.sample(self.model_update_config.holdout_size, self._torch_rng)
+            _, psi, targets = self._regression_data(sample)
+            self.logger.record("train/model_loss", float(self.model.loss(psi, targets)))
 
     def draw_collection(self) -> torch.Tensor:
         """The collection C of eq. (7): ``collection_size`` states, a ``uniform_fraction`` of them

@@ -34,6 +34,11 @@ class Transitions:
     def __len__(self) -> int:
         return int(self.rewards.shape[0])
 
+    def concat(self, other: Transitions) -> Transitions:
+        """This batch followed by ``other``."""
+        pairs = zip(vars(self).values(), vars(other).values(), strict=True)
+        return Transitions(*(torch.cat([mine, theirs]) for mine, theirs in pairs))
+
 
 class TransitionStore:
     """Append-only store of transitions in doubling tensors.

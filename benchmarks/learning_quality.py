@@ -1,0 +1,164 @@
+"""Learning quality of CMEPolicyIteration on the Gymnasium classics, several seeds.
+
+Each run trains with the Hydra config of its env (exactly what ``python train.py env=<name>``
+runs) and pauses every ``--eval-every`` steps for an evaluation: 10 episodes of the
+deterministic policy from random starts on a separate env. The table reports the FINAL
+evaluation (the last policy, not the best one seen) as mean +- std over seeds, the targets of
+issue 2, and the first step count at which an evaluation reached the target. Writes
+results/learning_quality.md, results/learning_curves.csv and, with matplotlib,
+results/learning_curves.png.
+
+    python benchmarks/learning_quality.py --envs pendulum cartpole --seeds 0 1 2 [--workers 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import multiprocessing
+import statistics
+import time
+from typing import Any
+
+import gymnasium as gym
+import torch
+from common import RESULTS, command_line, compose_config, markdown_table
+from omegaconf import OmegaConf
+from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.logger import configure
+from stable_baselines3.common.monitor import Monitor
+
+from cme_agent.experiment import build_agent, make_env
+
+TARGETS = {  # env config: (target return, step budget, evaluation period)
+    "pendulum": (-200.0, 6_000, 600),
+    "cartpole": (475.0, 10_000, 1_000),
+    "acrobot": (-100.0, 10_000, 1_000),
+    "mountain_car": (-130.0, 20_000, 2_000),
+    "mountain_car_continuous": (90.0, 30_000, 3_000),
+}
+
+
+def run_one(job: tuple[str, int, list[str]]) -> list[dict[str, Any]]:
+    """Train one seed on one env; return its learning curve (one row per evaluation)."""
+    env_name, seed, overrides = job
+    torch.set_num_threads(1)
+    _, budget, period = TARGETS[env_name]
+    cfg = compose_config([f"env={env_name}", f"seed={seed}", "verbose=0", *overrides])
+    model = build_agent(cfg, make_env(cfg))
+    model.set_logger(configure(None, []))
+    eval_env = Monitor(gym.make(cfg.env.id, **OmegaConf.to_container(cfg.env.kwargs)))
+    eval_env.reset(seed=10_000 + seed)
+    rows, train_seconds = [], 0.0
+    while model.num_timesteps < budget:
+        start = time.perf_counter()
+        model.learn(min(period, budget - model.num_timesteps), reset_num_timesteps=False)
+        train_seconds += time.perf_counter() - start
+        returns, _ = evaluate_policy(model, eval_env, n_eval_episodes=10, return_episode_rewards=True)
+        rows.append(
+            {
+                "env": env_name,
+                "seed": seed,
+                "steps": model.num_timesteps,
+                "return_mean": statistics.mean(returns),
+                "return_std": statistics.pstdev(returns),
+                "n_features": model.n_features,
+                "train_seconds": round(train_seconds, 1),
+            }
+        )
+        print(
+            f"{env_name} seed {seed} steps {model.num_timesteps}: {statistics.mean(returns):.1f} (q={model.n_features})",
+            flush=True,
+        )
+    return rows
+
+
+def summarise(env_name: str, curves: list[list[dict[str, Any]]]) -> list[Any]:
+    target, budget, _ = TARGETS[env_name]
+    finals = [curve[-1]["return_mean"] for curve in curves]
+    reached = [next((row["steps"] for row in curve if row["return_mean"] >= target), None) for curve in curves]
+    spread = statistics.stdev(finals) if len(finals) > 1 else 0.0
+    return [
+        env_name,
+        budget,
+        f"{target:g}",
+        f"{statistics.mean(finals):.1f} +- {spread:.1f}",
+        ", ".join(f"{f:.0f}" for f in finals),
+        "yes" if statistics.mean(finals) >= target else "no",
+        ", ".join("-" if r is None else str(r) for r in reached),
+        f"{statistics.mean(curve[-1]['train_seconds'] for curve in curves):.0f}",
+        f"{statistics.mean(curve[-1]['n_features'] for curve in curves):.0f}",
+    ]
+
+
+def plot(curves: dict[str, list[list[dict[str, Any]]]]) -> None:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib not installed: no figure (pip install -e '.[plots]')")
+        return
+    fig, axes = plt.subplots(1, len(curves), figsize=(4.5 * len(curves), 3.5), squeeze=False)
+    for ax, (env_name, runs) in zip(axes[0], curves.items(), strict=True):
+        for run in runs:
+            ax.plot([r["steps"] for r in run], [r["return_mean"] for r in run], alpha=0.4)
+        steps = [r["steps"] for r in runs[0]]
+        means = [statistics.mean(run[i]["return_mean"] for run in runs) for i in range(len(steps))]
+        ax.plot(steps, means, color="black", linewidth=2, label="mean")
+        ax.axhline(TARGETS[env_name][0], color="red", linestyle="--", label="target")
+        ax.set_title(env_name)
+        ax.set_xlabel("env steps")
+        ax.set_ylabel("evaluation return (10 episodes)")
+        ax.legend()
+    fig.suptitle(command_line(), fontsize=8)
+    fig.tight_layout()
+    fig.savefig(RESULTS / "learning_curves.png", dpi=100)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--envs", nargs="+", default=list(TARGETS), choices=list(TARGETS))
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--overrides", nargs="*", default=[], help="Hydra overrides for every run")
+    args = parser.parse_args()
+    jobs = [(env_name, seed, args.overrides) for env_name in args.envs for seed in args.seeds]
+    start = time.perf_counter()
+    with multiprocessing.get_context("spawn").Pool(args.workers) as pool:
+        results = pool.map(run_one, jobs, chunksize=1)
+    curves: dict[str, list[list[dict[str, Any]]]] = {}
+    for (env_name, _, _), curve in zip(jobs, results, strict=True):
+        curves.setdefault(env_name, []).append(curve)
+    header = [
+        "env",
+        "steps",
+        "target",
+        "final return (mean +- std)",
+        "per seed",
+        "target met",
+        "steps to target",
+        "train s",
+        "q",
+    ]
+    table = markdown_table(header, [summarise(env_name, runs) for env_name, runs in curves.items()])
+    text = (
+        f"# Learning quality of CMEPolicyIteration\n\nCommand: `{command_line()}`\n\n"
+        f"Seeds {args.seeds}; final return = 10-episode evaluation of the deterministic policy after the last "
+        f"training step (random starts, seeded apart from training); 'steps to target' = first evaluation at or above "
+        f"the target. Wall-clock {time.perf_counter() - start:.0f} s on this machine with {args.workers} workers.\n\n{table}\n"
+    )
+    print(text)
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / "learning_quality.md").write_text(text)
+    with open(RESULTS / "learning_curves.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(results[0][0]))
+        writer.writeheader()
+        for curve in results:
+            writer.writerows(curve)
+    plot(curves)
+
+
+if __name__ == "__main__":
+    main()
