@@ -18,6 +18,7 @@ import csv
 import multiprocessing
 import statistics
 import time
+from collections.abc import Callable
 from typing import Any
 
 import gymnasium as gym
@@ -39,11 +40,23 @@ TARGETS = {  # env config: (target return, step budget, evaluation period)
 }
 
 
-def run_one(job: tuple[str, int, list[str]]) -> list[dict[str, Any]]:
-    """Train one seed on one env; return its learning curve (one row per evaluation)."""
-    env_name, seed, overrides = job
+def episode_returns(model: Any, env: gym.Env, episodes: int) -> dict[str, float]:
+    """Mean and std of the return of the deterministic policy over ``episodes`` episodes."""
+    returns, _ = evaluate_policy(model, env, n_eval_episodes=episodes, return_episode_rewards=True)
+    return {"return_mean": statistics.mean(returns), "return_std": statistics.pstdev(returns)}
+
+
+def train_with_evaluations(
+    env_name: str,
+    seed: int,
+    overrides: list[str],
+    budget: int,
+    period: int,
+    evaluate: Callable[[Any, gym.Env], dict[str, float]] = lambda model, env: episode_returns(model, env, 10),
+) -> list[dict[str, Any]]:
+    """Train the Hydra config ``env=<env_name>`` for ``budget`` steps, evaluating every ``period``
+    steps on a separate env seeded apart from training; one row per evaluation."""
     torch.set_num_threads(1)
-    _, budget, period = TARGETS[env_name]
     cfg = compose_config([f"env={env_name}", f"seed={seed}", "verbose=0", *overrides])
     model = build_agent(cfg, make_env(cfg))
     model.set_logger(configure(None, []))
@@ -54,23 +67,20 @@ def run_one(job: tuple[str, int, list[str]]) -> list[dict[str, Any]]:
         start = time.perf_counter()
         model.learn(min(period, budget - model.num_timesteps), reset_num_timesteps=False)
         train_seconds += time.perf_counter() - start
-        returns, _ = evaluate_policy(model, eval_env, n_eval_episodes=10, return_episode_rewards=True)
-        rows.append(
-            {
-                "env": env_name,
-                "seed": seed,
-                "steps": model.num_timesteps,
-                "return_mean": statistics.mean(returns),
-                "return_std": statistics.pstdev(returns),
-                "n_features": model.n_features,
-                "train_seconds": round(train_seconds, 1),
-            }
-        )
+        row = {"env": env_name, "seed": seed, "steps": model.num_timesteps, **evaluate(model, eval_env)}
+        row.update(n_features=getattr(model, "n_features", 0), train_seconds=round(train_seconds, 1))
+        rows.append(row)
         print(
-            f"{env_name} seed {seed} steps {model.num_timesteps}: {statistics.mean(returns):.1f} (q={model.n_features})",
-            flush=True,
+            f"{env_name} seed {seed} steps {model.num_timesteps}: {row['return_mean']:.1f} (q={row['n_features']})", flush=True
         )
     return rows
+
+
+def run_one(job: tuple[str, int, list[str]]) -> list[dict[str, Any]]:
+    """One seed of one env with its budget and evaluation period from TARGETS."""
+    env_name, seed, overrides = job
+    _, budget, period = TARGETS[env_name]
+    return train_with_evaluations(env_name, seed, overrides, budget, period)
 
 
 def summarise(env_name: str, curves: list[list[dict[str, Any]]]) -> list[Any]:

@@ -45,6 +45,7 @@ from cme_agent.config import (
     check_unit_interval,
 )
 from cme_agent.dynamics import CMEModel, matching_pursuit, sgd_step
+from cme_agent.exploration import BehaviourPolicy
 from cme_agent.kernel_bank import gaussian_kernel
 from cme_agent.planning import bellman_residual_descent, bellman_residual_rms, bellman_residual_weights, lstd_weights, smooth
 from cme_agent.policy import CMEPolicy, _zero_reward
@@ -197,7 +198,7 @@ class CMEPolicyIteration(BaseAlgorithm):
             "_np_rng",
             "reward_fn",
             "reward_spec",
-            "_explore",
+            "_behaviour",
         ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
@@ -228,7 +229,7 @@ class CMEPolicyIteration(BaseAlgorithm):
         )
         callback.on_training_start(locals(), globals())
         self._announce_reward()
-        self._explore = self._np_rng.random(self.n_envs) < self.exploration_config.explore_fraction
+        self._behaviour = BehaviourPolicy(self.action_space, self.exploration_config, self._np_rng, self.n_envs)
         while self.num_timesteps < total_timesteps:
             steps = min(self.steps_per_iteration, total_timesteps - self.num_timesteps)
             self._phase_seconds = {}
@@ -266,7 +267,8 @@ class CMEPolicyIteration(BaseAlgorithm):
         callback.on_rollout_start()
         with self._timed("data_acquisition"):
             for _ in range(n_steps):
-                actions = self._behaviour_actions(self._last_obs)
+                random_phase = self.num_timesteps < self.exploration_config.random_steps
+                actions = self._behaviour(lambda: self.policy.predict(self._last_obs, deterministic=True)[0], random_phase)
                 new_obs, rewards, dones, infos = self.env.step(actions)
                 self.num_timesteps += self.env.num_envs
                 self._store(self._last_obs, actions, rewards, new_obs, dones, infos)
@@ -275,31 +277,9 @@ class CMEPolicyIteration(BaseAlgorithm):
                     return None
                 self._update_info_buffer(infos, dones)
                 self._last_obs = new_obs
-                self._redraw_exploration(dones)
+                self._behaviour.end_episodes(dones)
         callback.on_rollout_end()
         return self.store.get(slice(start, len(self.store)))
-
-    def _behaviour_actions(self, obs: np.ndarray) -> np.ndarray:
-        """Uniform random actions for the first ``random_steps`` steps; then the greedy action,
-        with Gaussian noise (Box) or epsilon-random actions (Discrete) in exploratory episodes."""
-        config = self.exploration_config
-        n = self.env.num_envs
-        space = self.action_space
-        if self.num_timesteps < config.random_steps:
-            if isinstance(space, spaces.Discrete):
-                return self._np_rng.integers(space.n, size=n)
-            return self._np_rng.uniform(space.low, space.high, size=(n, *space.shape)).astype(space.dtype)
-        actions, _ = self.policy.predict(obs, deterministic=True)
-        if isinstance(space, spaces.Discrete):
-            random_pick = self._explore & (self._np_rng.random(n) < config.epsilon)
-            return np.where(random_pick, self._np_rng.integers(space.n, size=n), actions)
-        noise = self._np_rng.normal(0.0, config.noise_std, size=actions.shape) * (space.high - space.low) / 2
-        return np.clip(actions + noise * self._explore[:, None], space.low, space.high).astype(space.dtype)
-
-    def _redraw_exploration(self, dones: np.ndarray) -> None:
-        """Decide afresh, for each env whose episode ended, whether its next episode explores."""
-        redraw = self._np_rng.random(len(dones)) < self.exploration_config.explore_fraction
-        self._explore = np.where(dones, redraw, self._explore)
 
     def _store(
         self,

@@ -174,12 +174,15 @@ class ExplorationConfig:
         as a fraction of the half-range of each action dimension
     :param epsilon: Discrete actions: probability of a uniformly random action per step in
         exploratory episodes
+    :param repeat: temporally extended exploration: random actions are held for this many
+        steps and Box noise has this correlation time (1: independent per step)
     """
 
     random_steps: int = 400
     explore_fraction: float = 0.3
     noise_std: float = 0.3
     epsilon: float = 0.3
+    repeat: int = 1
 
     def __post_init__(self) -> None:
         check(
@@ -191,6 +194,7 @@ class ExplorationConfig:
         check_unit_interval("exploration.explore_fraction", self.explore_fraction)
         check_non_negative("exploration.noise_std", self.noise_std)
         check_unit_interval("exploration.epsilon", self.epsilon)
+        check_positive_int("exploration.repeat", self.repeat)
 
 
 @dataclass(frozen=True)

@@ -24,11 +24,13 @@ def test_every_classic_env_has_a_config():
     assert {"pendulum", "mountain_car_continuous", "mountain_car", "cartpole", "acrobot"} <= set(ENV_CONFIGS)
 
 
+@pytest.mark.parametrize("agent_name", ["cme", "kernel"])
 @pytest.mark.parametrize("env_name", ENV_CONFIGS)
-def test_env_config_composes_into_an_agent(env_name):
-    cfg = _compose([f"env={env_name}"])
+def test_env_config_composes_into_an_agent(env_name, agent_name):
+    cfg = _compose([f"env={env_name}", f"agent={agent_name}"])
     env = make_env(cfg)
     agent = instantiate(cfg.agent, env=env, seed=0, _convert_="all")
+    assert type(agent).__name__ == cfg.agent._target_.rsplit(".", 1)[1]
     assert agent.gamma == cfg.agent.gamma
     assert agent.policy.phi.n_features > 1
     env.close()

@@ -14,3 +14,5 @@ __all__ = ["QuadcopterEnv", "QuadcopterPController", "quadcopter_reward", "quadc
 
 if "Quadcopter-v0" not in gymnasium.registry:
     gymnasium.register(id="Quadcopter-v0", entry_point="cme_agent.envs.quadcopter:QuadcopterEnv")
+if "ToyChain-v0" not in gymnasium.registry:
+    gymnasium.register(id="ToyChain-v0", entry_point="cme_agent.envs.toy_chain:ToyChainEnv")

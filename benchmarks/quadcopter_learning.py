@@ -1,0 +1,137 @@
+"""CMEPolicyIteration on Quadcopter-v0 against the scripted controller (issue 3, paper Figure 3).
+
+Trains ``python train.py env=quadcopter``'s config for several seeds, evaluating every
+``--eval-every`` steps: 10 episodes of the deterministic policy (random starts), return and
+final distance to the target. The scripted proportional controller is evaluated on the same
+episodes. Writes results/quadcopter_learning.md, results/quadcopter_learning.csv and, with
+matplotlib, results/quadcopter_learning.png (mean and individual runs, controller as a line).
+
+    python benchmarks/quadcopter_learning.py --seeds 0 1 2 [--steps 20000] [--workers 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import multiprocessing
+import statistics
+from functools import partial
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from common import RESULTS, command_line, markdown_table
+from learning_quality import train_with_evaluations
+
+from cme_agent.envs import QuadcopterPController
+
+
+def flight_statistics(model: Any, env: gym.Env, episodes: int = 10) -> dict[str, float]:
+    """Mean return and mean final distance to the target over ``episodes`` episodes."""
+    returns, distances = [], []
+    for _ in range(episodes):
+        obs, info = env.reset()
+        total, done = 0.0, False
+        while not done:
+            action, _ = model.predict(obs, deterministic=True)
+            obs, reward, terminated, truncated, info = env.step(action)
+            total += float(reward)
+            done = terminated or truncated
+        returns.append(total)
+        distances.append(info["distance_to_target"])
+    return {
+        "return_mean": statistics.mean(returns),
+        "return_std": statistics.pstdev(returns),
+        "final_distance": statistics.mean(distances),
+    }
+
+
+def controller_statistics(seed: int) -> dict[str, float]:
+    env = gym.make("Quadcopter-v0")
+    env.reset(seed=10_000 + seed)
+    return flight_statistics(QuadcopterPController.from_env(env.unwrapped), env)
+
+
+def run_seed(seed: int, steps: int, period: int, overrides: list[str]) -> list[dict[str, Any]]:
+    return train_with_evaluations("quadcopter", seed, overrides, steps, period, flight_statistics)
+
+
+def plot(curves: list[list[dict[str, Any]]], reference: float) -> None:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib not installed: no figure (pip install -e '.[plots]')")
+        return
+    fig, ax = plt.subplots(figsize=(6, 4))
+    steps = [row["steps"] for row in curves[0]]
+    for curve in curves:
+        ax.plot(steps, [row["return_mean"] for row in curve], color="tab:blue", alpha=0.3)
+    ax.plot(
+        steps,
+        np.mean([[row["return_mean"] for row in c] for c in curves], axis=0),
+        color="tab:blue",
+        linewidth=2,
+        label="CME (mean)",
+    )
+    ax.axhline(reference, color="black", linestyle="--", label="scripted controller")
+    ax.set_xlabel("env steps")
+    ax.set_ylabel("evaluation return (10 episodes)")
+    ax.set_title("Quadcopter-v0", fontsize=10)
+    ax.legend()
+    fig.suptitle(command_line(), fontsize=7)
+    fig.tight_layout()
+    fig.savefig(RESULTS / "quadcopter_learning.png", dpi=100)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    parser.add_argument("--steps", type=int, default=20_000)
+    parser.add_argument("--eval-every", type=int, default=2_000)
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--overrides", nargs="*", default=[])
+    args = parser.parse_args()
+    job = partial(run_seed, steps=args.steps, period=args.eval_every, overrides=args.overrides)
+    with multiprocessing.get_context("spawn").Pool(args.workers) as pool:
+        curves = pool.map(job, args.seeds, chunksize=1)
+    controller = [controller_statistics(seed) for seed in args.seeds]
+    reference = statistics.mean(c["return_mean"] for c in controller)
+    rows = []
+    for seed, curve, ctrl in zip(args.seeds, curves, controller, strict=True):
+        final = curve[-1]
+        rows.append(
+            [
+                seed,
+                f"{final['return_mean']:.1f}",
+                f"{ctrl['return_mean']:.1f}",
+                f"{final['return_mean'] / ctrl['return_mean']:.2f}",
+                f"{final['final_distance']:.2f}",
+                f"{ctrl['final_distance']:.2f}",
+            ]
+        )
+    fractions = [curve[-1]["return_mean"] / ctrl["return_mean"] for curve, ctrl in zip(curves, controller, strict=True)]
+    spread = statistics.stdev(fractions) if len(fractions) > 1 else 0.0
+    header = ["seed", "CME return", "controller return", "fraction", "CME final distance (m)", "controller final distance (m)"]
+    text = (
+        f"# CMEPolicyIteration on Quadcopter-v0\n\nCommand: `{command_line()}`\n\n"
+        f"Final evaluation after {args.steps} env steps: 10 episodes of the deterministic policy per seed (random starts), "
+        f"the scripted controller on the same starts. Fraction of the controller's return: "
+        f"{statistics.mean(fractions):.2f} +- {spread:.2f} (mean +- std over {len(fractions)} seeds; target 0.80).\n\n"
+        f"{markdown_table(header, rows)}\n"
+    )
+    print(text)
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / "quadcopter_learning.md").write_text(text)
+    with open(RESULTS / "quadcopter_learning.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(curves[0][0]))
+        writer.writeheader()
+        for curve in curves:
+            writer.writerows(curve)
+    plot(curves, reference)
+
+
+if __name__ == "__main__":
+    main()
