@@ -47,6 +47,7 @@ from cme_agent.config import (
 from cme_agent.dynamics import CMEModel, matching_pursuit, sgd_step
 from cme_agent.exploration import BehaviourPolicy
 from cme_agent.kernel_bank import gaussian_kernel
+from cme_agent.persistence import PersistenceMixin, plain
 from cme_agent.planning import bellman_residual_descent, bellman_residual_rms, bellman_residual_weights, lstd_weights, smooth
 from cme_agent.policy import CMEPolicy, _zero_reward
 from cme_agent.rewards import RewardSpec, StepReward, resolve_reward
@@ -64,7 +65,7 @@ def _check_spaces(observation_space: spaces.Space, action_space: spaces.Space) -
         raise ValueError(f"CMEPolicyIteration needs a Discrete or 1-D Box action space, got {action_space}")
 
 
-class CMEPolicyIteration(BaseAlgorithm):
+class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
     """Policy iteration with an online conditional-mean-embedding model of the dynamics
     (Lever, Stafford & Shawe-Taylor, 2014), with the stable-baselines3 interface.
 
@@ -81,6 +82,10 @@ class CMEPolicyIteration(BaseAlgorithm):
         ``(obs (N, obs_dim), action) -> (N,)``; default: the known reward of the env id, the
         env's own ``reward_function``, or else a reward learned by regression on psi. Not saved
         with the model: pass it again to ``load()``.
+    :param reset_envs_each_iteration: start every iteration's data acquisition with fresh
+        episodes, the envs reset with seeds drawn from the agent's RNG: the run is then a
+        deterministic function of the agent's state at iteration boundaries, so a run resumed
+        from a checkpoint ends exactly as an uninterrupted one
     :param policy_kwargs: arguments of :class:`CMEPolicy` (phi, observation, action_search)
     :param stats_window_size: episodes averaged in ``rollout/ep_rew_mean``
     :param tensorboard_log: TensorBoard log folder (None: no TensorBoard)
@@ -105,6 +110,7 @@ class CMEPolicyIteration(BaseAlgorithm):
         evaluation: EvaluationConfig | dict[str, Any] | None = None,
         exploration: ExplorationConfig | dict[str, Any] | None = None,
         reward_fn: RewardSpec | StepReward | None = None,
+        reset_envs_each_iteration: bool = False,
         policy_kwargs: dict[str, Any] | None = None,
         stats_window_size: int = 100,
         tensorboard_log: str | None = None,
@@ -136,6 +142,9 @@ class CMEPolicyIteration(BaseAlgorithm):
         self.omega = omega
         self.steps_per_iteration = steps_per_iteration
         self.reward_fn = reward_fn
+        self.reset_envs_each_iteration = reset_envs_each_iteration
+        self.stats_window_size = stats_window_size
+        self._behaviour: BehaviourPolicy | None = None
         self.iteration = 0
         self.n_features = 0
         self.model_step_scale = 1.0
@@ -155,7 +164,9 @@ class CMEPolicyIteration(BaseAlgorithm):
     def _setup_model(self) -> None:
         """Build the policy (phi, psi, Q weights), the model B, the stores and the RNGs."""
         self._setup_lr_schedule()
-        seed = self.seed if self.seed is not None else int(np.random.SeedSequence().generate_state(1)[0])
+        if self.seed is None:
+            self.seed = int(np.random.SeedSequence().generate_state(1)[0])
+        seed = self.seed
         self.set_random_seed(seed)
         self._torch_rng = torch.Generator().manual_seed(seed)
         self._np_rng = np.random.default_rng(seed)
@@ -189,18 +200,6 @@ class CMEPolicyIteration(BaseAlgorithm):
             return None, "learned"
         return spec, source
 
-    def _excluded_save_params(self) -> list[str]:
-        return [
-            *super()._excluded_save_params(),
-            "store",
-            "holdout",
-            "_torch_rng",
-            "_np_rng",
-            "reward_fn",
-            "reward_spec",
-            "_behaviour",
-        ]
-
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         return ["policy", "model"], []
 
@@ -229,10 +228,13 @@ class CMEPolicyIteration(BaseAlgorithm):
         )
         callback.on_training_start(locals(), globals())
         self._announce_reward()
-        self._behaviour = BehaviourPolicy(self.action_space, self.exploration_config, self._np_rng, self.n_envs)
+        if self._behaviour is None or len(self._behaviour.explore) != self.n_envs:
+            self._behaviour = self._make_behaviour()
         while self.num_timesteps < total_timesteps:
             steps = min(self.steps_per_iteration, total_timesteps - self.num_timesteps)
             self._phase_seconds = {}
+            if self.reset_envs_each_iteration:
+                self._reset_envs()
             new_data = self.data_acquisition(callback, math.ceil(steps / self.n_envs))
             if new_data is None:
                 break
@@ -247,6 +249,33 @@ class CMEPolicyIteration(BaseAlgorithm):
                 self.dump_logs()
         callback.on_training_end()
         return self
+
+    def _make_behaviour(self) -> BehaviourPolicy:
+        return BehaviourPolicy(self.action_space, self.exploration_config, self._np_rng, self.n_envs)
+
+    def _reset_envs(self) -> None:
+        """Fresh episodes in every env, seeded from the agent's RNG (``reset_envs_each_iteration``)."""
+        self.env.seed(int(self._np_rng.integers(2**31 - 1)))
+        self._last_obs = self.env.reset()
+        self._behaviour.end_episodes(np.ones(self.n_envs, dtype=bool))
+
+    def _constructor_kwargs(self) -> dict[str, Any]:
+        """The constructor arguments as plain data (for :meth:`save`)."""
+        return {
+            "gamma": self.gamma,
+            "omega": self.omega,
+            "steps_per_iteration": self.steps_per_iteration,
+            "feature_selection": plain(self.feature_selection_config),
+            "model_update": plain(self.model_update_config),
+            "evaluation": plain(self.evaluation_config),
+            "exploration": plain(self.exploration_config),
+            "reset_envs_each_iteration": self.reset_envs_each_iteration,
+            "policy_kwargs": plain(self.policy_kwargs),
+            "stats_window_size": self.stats_window_size,
+            "tensorboard_log": self.tensorboard_log,
+            "verbose": self.verbose,
+            "seed": self.seed,
+        }
 
     @contextlib.contextmanager
     def _timed(self, phase: str) -> Iterator[None]:

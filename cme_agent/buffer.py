@@ -103,6 +103,26 @@ class TransitionStore:
             indices = torch.arange(*indices.indices(self.size), device=self._data["rewards"].device)
         return Transitions(**{name: tensor[indices] for name, tensor in self._data.items()})
 
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        """The stored transitions (without the spare capacity), for saving."""
+        return {name: tensor[: self.size].clone() for name, tensor in self._data.items()}
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        """Replace the contents by a :meth:`state_dict`; shapes and dtypes must match this store."""
+        sizes = {int(tensor.shape[0]) for tensor in state.values()}
+        if set(state) != set(self._data) or len(sizes) != 1:
+            raise ValueError(f"a transition store needs the fields {sorted(self._data)} of one length")
+        for name, tensor in self._data.items():
+            if state[name].shape[1:] != tensor.shape[1:] or state[name].dtype != tensor.dtype:
+                found = f"shape {tuple(state[name].shape)}, dtype {state[name].dtype}"
+                raise ValueError(f"stored {name} has {found}; expected rows of {tuple(tensor.shape[1:])}, {tensor.dtype}")
+        self.size = 0
+        self._data = {name: tensor[:0].clone() for name, tensor in self._data.items()}
+        self._grow(max(sizes.pop(), 1))
+        for name, tensor in state.items():
+            self._data[name][: len(tensor)] = tensor.to(self._data[name].device)
+        self.size = len(state["rewards"])
+
     def sample(self, n: int, generator: torch.Generator) -> Transitions:
         """``n`` transitions drawn uniformly with replacement: O(n), whatever |D|."""
         if self.size == 0:

@@ -14,6 +14,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
+import torch
 from gymnasium import spaces
 
 from cme_agent.config import ExplorationConfig
@@ -78,3 +79,16 @@ class BehaviourPolicy:
         self.explore = np.where(dones, redraw, self.explore)
         self.hold_left[dones] = 0
         self.noise[dones] = 0.0
+
+    _STATE = ("explore", "held", "hold_left", "noise")
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        """Per-env exploration state as tensors, for checkpoints."""
+        return {name: torch.from_numpy(np.array(getattr(self, name), copy=True)) for name in self._STATE}
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        """Restore a :meth:`state_dict` taken with the same number of envs."""
+        if len(state["explore"]) != len(self.explore):
+            raise ValueError(f"exploration state of {len(state['explore'])} envs, but there are {len(self.explore)}")
+        for name in self._STATE:
+            setattr(self, name, state[name].numpy().astype(getattr(self, name).dtype))

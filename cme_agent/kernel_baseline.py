@@ -35,6 +35,9 @@ class KernelPolicyIteration(CMEPolicyIteration):
         self.kernel_l2 = kernel_l2
         super().__init__(*args, **kwargs)
 
+    def _constructor_kwargs(self) -> dict[str, Any]:
+        return {**super()._constructor_kwargs(), "kernel_bandwidth": self.kernel_bandwidth, "kernel_l2": self.kernel_l2}
+
     def feature_selection(self, new_data: Transitions) -> int:
         """No selection: a kernel centred at every new state-action joins psi.
 

@@ -85,7 +85,7 @@ class ToyChainEnv(gym.Env[np.ndarray, np.ndarray | int]):
     def __init__(
         self,
         goal: float = 0.6,
-        sigma: float = 0.2,
+        sigma: float = 0.3,
         start_low: float = -0.9,
         start_high: float = -0.5,
         step_size: float = 0.1,
