@@ -233,18 +233,17 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         while self.num_timesteps < total_timesteps:
             steps = min(self.steps_per_iteration, total_timesteps - self.num_timesteps)
             self._phase_seconds = {}
-            if self.reset_envs_each_iteration:
-                self._reset_envs()
             new_data = self.data_acquisition(callback, math.ceil(steps / self.n_envs))
             if new_data is None:
                 break
             self.iteration += 1
-            self.feature_selection(new_data)
-            self.model_update()
-            for _ in range(self.evaluation_config.rounds):
-                collection = self.draw_collection()
-                value_weights = self.policy_evaluation(collection)
-                self.policy_improvement(value_weights)
+            with torch.no_grad():
+                self.feature_selection(new_data)
+                self.model_update()
+                for _ in range(self.evaluation_config.rounds):
+                    collection = self.draw_collection()
+                    value_weights = self.policy_evaluation(collection)
+                    self.policy_improvement(value_weights)
             if log_interval > 0 and self.iteration % log_interval == 0:
                 self.dump_logs()
         callback.on_training_end()
@@ -293,7 +292,9 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         :return: the new training transitions, or None if the callback stopped training
         """
         start = len(self.store)
-        callback.on_rollout_start()
+        callback.on_rollout_start()  # an iteration boundary: checkpoints are taken here
+        if self.reset_envs_each_iteration:
+            self._reset_envs()
         with self._timed("data_acquisition"):
             for _ in range(n_steps):
                 random_phase = self.num_timesteps < self.exploration_config.random_steps

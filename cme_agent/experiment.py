@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
-from hydra.utils import instantiate
+from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig, OmegaConf
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.env_util import make_vec_env
@@ -18,6 +18,7 @@ from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import VecEnv
 
 import cme_agent  # noqa: F401  (registers the custom envs)
+from cme_agent.callbacks import IterationCheckpoint
 
 
 def make_env(cfg: DictConfig) -> VecEnv:
@@ -35,6 +36,18 @@ def build_agent(cfg: DictConfig, env: VecEnv) -> BaseAlgorithm:
         if isinstance(cause, (ValueError, TypeError)):
             raise SystemExit(f"Invalid configuration: {cause}") from cause
         raise
+
+
+def resume_agent(cfg: DictConfig, env: VecEnv) -> BaseAlgorithm:
+    """Load the checkpoint ``cfg.resume`` (written by a run of the same config) to continue on ``env``."""
+    agent_class = get_class(cfg.agent._target_)
+    model = agent_class.load(cfg.resume, env=env)
+    if model.num_timesteps >= cfg.total_timesteps:
+        raise SystemExit(
+            f"the checkpoint {cfg.resume} already has {model.num_timesteps} >= total_timesteps={cfg.total_timesteps} steps"
+        )
+    print(f"resuming from {cfg.resume} at {model.num_timesteps} steps")
+    return model
 
 
 def evaluate(model: BaseAlgorithm, cfg: DictConfig) -> tuple[float, float]:
@@ -57,11 +70,17 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """
     run_dir.mkdir(parents=True, exist_ok=True)
     env = make_env(cfg)
-    model = build_agent(cfg, env)
+    model = resume_agent(cfg, env) if cfg.resume else build_agent(cfg, env)
     formats = ["stdout", "csv", "tensorboard"] if cfg.verbose else ["csv", "tensorboard"]
     model.set_logger(configure(str(run_dir), formats))
+    callbacks = [IterationCheckpoint(run_dir / "checkpoint.zip", cfg.checkpoint_every)] if cfg.checkpoint_every else []
     start = time.perf_counter()
-    model.learn(total_timesteps=cfg.total_timesteps, progress_bar=cfg.progress_bar)
+    model.learn(
+        total_timesteps=cfg.total_timesteps - model.num_timesteps,
+        callback=callbacks,
+        progress_bar=cfg.progress_bar,
+        reset_num_timesteps=not cfg.resume,
+    )
     train_seconds = time.perf_counter() - start
     model.save(run_dir / "model.zip")
     mean, std = evaluate(model, cfg)

@@ -178,15 +178,15 @@ class PersistenceMixin:
 
     def _restore(self, tensors: dict[str, Any], numpy_rng: dict[str, Any]) -> None:
         try:
+            if "behaviour" in tensors and self.env is not None:
+                self._behaviour = self._make_behaviour()  # draws from the RNG: before its state is restored
+                self._behaviour.load_state_dict(tensors["behaviour"])
             self.policy.load_state_dict(tensors["policy"], strict=True)
             self.model.load_state_dict(tensors["model"], strict=True)
             self._torch_rng.set_state(tensors["torch_rng"])
             self._np_rng.bit_generator.state = numpy_rng
         except (RuntimeError, KeyError, TypeError, ValueError) as error:
             raise ModelFileError(f"the model file does not match its own description: {error}") from error
-        if "behaviour" in tensors and self.env is not None:
-            self._behaviour = self._make_behaviour()
-            self._behaviour.load_state_dict(tensors["behaviour"])
         if "buffers" in tensors:
             self._load_buffer_state(tensors["buffers"])
 
