@@ -121,5 +121,7 @@ class ActionEncoder(torch.nn.Module):
         return 2 * (actions - self.low) / (self.high - self.low) - 1
 
     def decode(self, encoded: torch.Tensor) -> torch.Tensor:
-        """Inverse of :meth:`encode` for Box actions: (N, act_dim) in [-1, 1] to env units."""
-        return self.low + (encoded.clamp(-1, 1) + 1) * (self.high - self.low) / 2
+        """Inverse of :meth:`encode` for Box actions: (N, act_dim) in [-1, 1] to env units,
+        clamped to the bounds (float rounding must never step outside the space)."""
+        actions = self.low + (encoded.clamp(-1, 1) + 1) * (self.high - self.low) / 2
+        return torch.minimum(torch.maximum(actions, self.low), self.high)
