@@ -360,7 +360,10 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         """
         config = self.feature_selection_config
         with self._timed("feature_selection"):
-            if len(new_data) == 0:
+            budget = config.max_features
+            if config.max_total_features is not None:
+                budget = min(budget, config.max_total_features - self.n_features)
+            if len(new_data) == 0 or budget <= 0:
                 return self._record_features_added(0)
             subsample = self.store.sample(config.subsample_size, self._torch_rng)
             batch = new_data.concat(subsample)
@@ -371,7 +374,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             centres = z[: len(new_data)]
             bandwidths = torch.tensor(config.bandwidths, dtype=z.dtype, device=z.device)
             atoms = torch.cat([gaussian_kernel(z, centres, (1 / (2 * h**2)).expand(len(centres))) for h in bandwidths], dim=1)
-            result = matching_pursuit(atoms, residual, config.threshold, config.max_features, config.orthogonal)
+            result = matching_pursuit(atoms, residual, config.threshold, budget, config.orthogonal)
             picked = result.indices
             self.policy.grow(centres[picked % len(centres)], bandwidths[picked // len(centres)])
             self.model.append(config.theta * result.weights.T)

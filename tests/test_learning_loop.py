@@ -108,3 +108,11 @@ def test_device_is_honoured(pendulum_kwargs):
     model = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", device="cpu", **pendulum_kwargs)
     assert model.device.type == "cpu" and model.policy.device.type == "cpu"
     assert model.model.weights.device.type == "cpu"
+
+
+def test_feature_budget_caps_q(pendulum_kwargs):
+    kwargs = {**pendulum_kwargs, "feature_selection": {"subsample_size": 300, "max_features": 20, "max_total_features": 30}}
+    model = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=0, **kwargs)
+    model.learn(500)
+    assert model.n_features == 30
+    assert model.model.weights.shape[1] == model.policy.theta_psi.shape[0] == 30
