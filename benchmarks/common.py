@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import shlex
 import sys
 from pathlib import Path
@@ -31,3 +32,16 @@ def markdown_table(header: list[str], rows: list[list[Any]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]
     return "\n".join(lines)
+
+
+def write_report(stem: str, text: str, curves: list[list[dict[str, Any]]]) -> None:
+    """Print ``text`` and write it to results/<stem>.md, the learning curves (one row per
+    evaluation, all runs) to results/<stem>.csv."""
+    print(text)
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / f"{stem}.md").write_text(text)
+    with open(RESULTS / f"{stem}.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(curves[0][0]))
+        writer.writeheader()
+        for curve in curves:
+            writer.writerows(curve)

@@ -5,7 +5,7 @@ runs) and pauses every ``--eval-every`` steps for an evaluation: 10 episodes of 
 deterministic policy from random starts on a separate env. The table reports the FINAL
 evaluation (the last policy, not the best one seen) as mean +- std over seeds, the targets of
 issue 2, and the first step count at which an evaluation reached the target. Writes
-results/learning_quality.md, results/learning_curves.csv and, with matplotlib,
+results/learning_quality.md, results/learning_quality.csv and, with matplotlib,
 results/learning_curves.png.
 
     python benchmarks/learning_quality.py --envs pendulum cartpole --seeds 0 1 2 [--workers 2]
@@ -14,7 +14,6 @@ results/learning_curves.png.
 from __future__ import annotations
 
 import argparse
-import csv
 import multiprocessing
 import statistics
 import time
@@ -23,7 +22,7 @@ from typing import Any
 
 import gymnasium as gym
 import torch
-from common import RESULTS, command_line, compose_config, markdown_table
+from common import RESULTS, command_line, compose_config, markdown_table, write_report
 from omegaconf import OmegaConf
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.logger import configure
@@ -159,14 +158,7 @@ def main() -> None:
         f"training step (random starts, seeded apart from training); 'steps to target' = first evaluation at or above "
         f"the target. Wall-clock {time.perf_counter() - start:.0f} s on this machine with {args.workers} workers.\n\n{table}\n"
     )
-    print(text)
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "learning_quality.md").write_text(text)
-    with open(RESULTS / "learning_curves.csv", "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(results[0][0]))
-        writer.writeheader()
-        for curve in results:
-            writer.writerows(curve)
+    write_report("learning_quality", text, results)
     plot(curves)
 
 

@@ -12,7 +12,6 @@ matplotlib, results/quadcopter_learning.png (mean and individual runs, controlle
 from __future__ import annotations
 
 import argparse
-import csv
 import multiprocessing
 import statistics
 from functools import partial
@@ -20,7 +19,7 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-from common import RESULTS, command_line, markdown_table
+from common import RESULTS, command_line, markdown_table, write_report
 from learning_quality import train_with_evaluations
 
 from cme_agent.envs import QuadcopterPController
@@ -122,14 +121,7 @@ def main() -> None:
         f"{statistics.mean(fractions):.2f} +- {spread:.2f} (mean +- std over {len(fractions)} seeds; target 0.80).\n\n"
         f"{markdown_table(header, rows)}\n"
     )
-    print(text)
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "quadcopter_learning.md").write_text(text)
-    with open(RESULTS / "quadcopter_learning.csv", "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(curves[0][0]))
-        writer.writeheader()
-        for curve in curves:
-            writer.writerows(curve)
+    write_report("quadcopter_learning", text, curves)
     plot(curves, reference)
 
 

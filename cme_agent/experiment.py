@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
+import torch
 from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig, OmegaConf
 from stable_baselines3.common.base_class import BaseAlgorithm
@@ -33,7 +34,7 @@ def build_agent(cfg: DictConfig, env: VecEnv) -> BaseAlgorithm:
         return instantiate(cfg.agent, env=env, seed=cfg.seed, verbose=cfg.verbose, _convert_="all")
     except Exception as error:  # Hydra wraps constructor errors in InstantiationException
         cause = error.__cause__ if error.__cause__ is not None else error
-        if isinstance(cause, (ValueError, TypeError)):
+        if isinstance(cause, (ValueError, TypeError, AssertionError)):  # SB3 asserts on unsupported action spaces
             raise SystemExit(f"Invalid configuration: {cause}") from cause
         raise
 
@@ -69,6 +70,8 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     :return: the summary
     """
     run_dir.mkdir(parents=True, exist_ok=True)
+    if cfg.torch_threads:
+        torch.set_num_threads(cfg.torch_threads)
     env = make_env(cfg)
     model = resume_agent(cfg, env) if cfg.resume else build_agent(cfg, env)
     formats = ["stdout", "csv", "tensorboard"] if cfg.verbose else ["csv", "tensorboard"]

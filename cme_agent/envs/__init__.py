@@ -3,6 +3,9 @@
 ``Quadcopter-v0``: :class:`cme_agent.envs.quadcopter.QuadcopterEnv`, the paper's
 simulated Pelican navigation task. It handles its own time limit (``time_limit``), so it
 is registered without ``max_episode_steps``.
+
+``ToyChain-v0``: :class:`cme_agent.envs.toy_chain.ToyChainEnv`, the paper's Toy MDP, a
+navigation task on a Markov chain on the interval [-1, 1].
 """
 
 import gymnasium

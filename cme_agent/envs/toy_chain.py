@@ -174,10 +174,12 @@ class ToyChainEnv(gym.Env[np.ndarray, np.ndarray | int]):
         return float(clipped[0, 0]), torch.from_numpy(clipped)
 
     def _info(self) -> dict[str, Any]:
+        """Distance from the position to the goal (unit of x) and steps taken this episode."""
         return {"distance_to_goal": abs(float(self._obs[0]) - self.goal), "steps": self._steps}
 
     def render(self) -> np.ndarray | None:
-        """The interval (grey), the reward bump over it (green, peak at the goal) and the agent.
+        """The interval (grey), the reward bump over it (green, a line at the goal), the start
+        interval (blue, under the axis) and the agent (black disc).
 
         :return: for ``"rgb_array"``, a uint8 image of shape ``(render_size // 2, render_size,
             3)``; None when ``render_mode`` is None.
