@@ -45,6 +45,7 @@ from cme_agent.config import (
     check_unit_interval,
 )
 from cme_agent.dynamics import CMEModel, matching_pursuit, sgd_step
+from cme_agent.encoding import KNOWN_OBSERVATIONS
 from cme_agent.exploration import BehaviourPolicy
 from cme_agent.kernel_bank import gaussian_kernel
 from cme_agent.persistence import PersistenceMixin, plain
@@ -172,6 +173,8 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         self._np_rng = np.random.default_rng(seed)
         kwargs = dict(self.policy_kwargs)
         kwargs.setdefault("candidate_seed", seed)
+        if "observation" not in kwargs and self.env_id in KNOWN_OBSERVATIONS:
+            kwargs["observation"] = KNOWN_OBSERVATIONS[self.env_id]
         self.policy_kwargs = kwargs
         self.policy = self.policy_class(self.observation_space, self.action_space, n_features=self.n_features, **kwargs).to(
             self.device

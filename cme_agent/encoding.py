@@ -16,6 +16,14 @@ from gymnasium import spaces
 
 from cme_agent.config import ObservationConfig
 
+KNOWN_OBSERVATIONS: dict[str, ObservationConfig] = {
+    "Pendulum-v1": ObservationConfig(angle_pairs=((0, 1),)),
+    "Acrobot-v1": ObservationConfig(angle_pairs=((0, 1), (2, 3))),
+    "CartPole-v1": ObservationConfig(low=(-2.4, -3.0, -0.21, -3.5), high=(2.4, 3.0, 0.21, 3.5)),
+}
+"""Facts about the observations of known envs (angle pairs; finite bounds where the space has
+none), used when ``policy_kwargs`` gives no ``observation``."""
+
 
 def _bound(values: tuple[float, ...] | None, default: np.ndarray, name: str) -> np.ndarray:
     bound = default.astype(np.float64) if values is None else np.asarray(values, dtype=np.float64)

@@ -107,8 +107,21 @@ def test_unsupported_action_space_is_named():
 
 
 def test_infinite_observation_bounds_ask_for_normalisation():
+    from gymnasium.envs.classic_control import CartPoleEnv
+
+    unknown = gym.wrappers.TimeLimit(CartPoleEnv(), 500)  # no env id: its bounds are not known
     with pytest.raises(ValueError, match="infinite bounds in dims \\[1, 3\\]"):
-        CMEPolicyIteration("CMEPolicy", "CartPole-v1")
+        CMEPolicyIteration("CMEPolicy", unknown)
+
+
+def test_known_envs_get_their_observation_facts():
+    pendulum = CMEPolicyIteration("CMEPolicy", "Pendulum-v1")
+    assert pendulum.policy.obs_encoder.angle_pairs == [(0, 1)]
+    assert pendulum.policy.phi.n_features == 11 * 11 + 1  # angle x velocity grid
+    cartpole = CMEPolicyIteration("CMEPolicy", "CartPole-v1")
+    assert float(cartpole.policy.obs_encoder.half_range[1]) == 3.0
+    explicit = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", policy_kwargs={"observation": {"angle_pairs": []}})
+    assert explicit.policy.obs_encoder.angle_pairs == []
 
 
 @pytest.mark.parametrize(
