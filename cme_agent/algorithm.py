@@ -146,6 +146,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         self.reset_envs_each_iteration = reset_envs_each_iteration
         self.stats_window_size = stats_window_size
         self._behaviour: BehaviourPolicy | None = None
+        self._value_weights: torch.Tensor | None = None
         self.iteration = 0
         self.n_features = 0
         self.model_step_scale = 1.0
@@ -192,16 +193,16 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         self._phase_seconds: dict[str, float] = {}
 
     def _resolve_reward(self) -> tuple[RewardSpec | None, str]:
+        """The reward to plan with and its source; a loaded model keeps the source it was trained with."""
         saved_source = getattr(self, "reward_source", None)
+        if saved_source == "learned":
+            return None, "learned"
         if saved_source == "user" and self.reward_fn is None:
             raise ValueError("this model was trained with a user-supplied reward: pass reward_fn= to load()")
         env = self.env.envs[0] if self.env is not None and hasattr(self.env, "envs") else None
         if env is None and self.env_id is not None and saved_source == "env":
             env = gym.make(self.env_id, **self.env_kwargs)
-        spec, source = resolve_reward(self.reward_fn, self.env_id, env)
-        if saved_source == "learned":
-            return None, "learned"
-        return spec, source
+        return resolve_reward(self.reward_fn, self.env_id, env)
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         return ["policy", "model"], []
@@ -470,7 +471,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             next_phi = self.model.expected_next_phi(phi, psi)
             rewards = self.expected_reward(states, actions, psi)
             if config.solver == "gd":
-                initial = getattr(self, "_value_weights", torch.zeros_like(phi[0]))
+                initial = self._value_weights if self._value_weights is not None else torch.zeros_like(phi[0])
                 weights = bellman_residual_descent(phi, next_phi, rewards, self.gamma, config.l2, initial, config.gd_steps)
             elif config.method == "lstd":
                 weights = lstd_weights(phi, next_phi, rewards, self.gamma, config.l2)

@@ -94,6 +94,8 @@ class PersistenceMixin:
         }
         if self._behaviour is not None:
             state["behaviour"] = self._behaviour.state_dict()
+        if self._value_weights is not None:
+            state["value_weights"] = self._value_weights  # the warm start of evaluation.solver=gd
         if include_buffers:
             state["buffers"] = self._buffer_state()
         return state
@@ -184,6 +186,7 @@ class PersistenceMixin:
             self.policy.load_state_dict(tensors["policy"], strict=True)
             self.model.load_state_dict(tensors["model"], strict=True)
             self._torch_rng.set_state(tensors["torch_rng"])
+            self._value_weights = tensors.get("value_weights")
             self._np_rng.bit_generator.state = numpy_rng
         except (RuntimeError, KeyError, TypeError, ValueError) as error:
             raise ModelFileError(f"the model file does not match its own description: {error}") from error
