@@ -84,3 +84,10 @@ def test_set_env_and_continue(pendulum_kwargs):
     model.learn(200, reset_num_timesteps=False)
     assert model.get_env() is new_env
     assert model.num_timesteps == 400 and len(model.store) + len(model.holdout) == 400
+
+
+def test_progress_bar(pendulum_kwargs):
+    """SB3's ProgressBarCallback reads learn()'s local total_timesteps; it needs tqdm and rich installed."""
+    model = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=0, **pendulum_kwargs)
+    model.learn(200, progress_bar=True)
+    assert model.num_timesteps == 200

@@ -81,3 +81,24 @@ def test_train_refuses_bad_configuration_clearly(tmp_path, override, message):
     assert result.returncode != 0
     assert message in result.stderr + result.stdout
     assert "Traceback" not in result.stderr
+
+
+def test_multirun_sweep_writes_one_run_directory_per_seed(tmp_path):
+    command = [
+        sys.executable,
+        str(ROOT / "train.py"),
+        "-m",
+        "seed=0,1",
+        "total_timesteps=200",
+        "eval_episodes=1",
+        "verbose=0",
+        "agent.steps_per_iteration=100",
+        "agent.model_update.n_steps=10",
+        "agent.evaluation.collection_size=300",
+        "agent.exploration.random_steps=100",
+        f"hydra.sweep.dir={tmp_path}",
+    ]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    seeds = [json.loads((tmp_path / str(job) / "summary.json").read_text())["seed"] for job in (0, 1)]
+    assert seeds == [0, 1]
