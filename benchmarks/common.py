@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import shlex
+import subprocess
 import sys
 from pathlib import Path
 from typing import Any
@@ -22,9 +23,23 @@ def compose_config(overrides: list[str]) -> DictConfig:
 
 
 def command_line() -> str:
-    """The command that is running, as a user would type it from the repository root."""
+    """The command that is running, as a user would type it from the repository root, and the
+    commit of the code it ran (with ``+changes`` if the work tree differed from it)."""
     script = Path(sys.argv[0]).resolve().relative_to(ROOT)
-    return " ".join(["python", str(script), *(shlex.quote(a) for a in sys.argv[1:])])
+    command = " ".join(["python", str(script), *(shlex.quote(a) for a in sys.argv[1:])])
+    return f"{command}` at commit `{code_version()}"
+
+
+def code_version() -> str:
+    """``git describe``-like id of the code: the short commit hash, ``+changes`` if the tree is dirty."""
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True)
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True, text=True
+        )
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return commit.stdout.strip() + ("+changes" if dirty.stdout.strip() else "")
 
 
 def markdown_table(header: list[str], rows: list[list[Any]]) -> str:
