@@ -60,3 +60,36 @@ def write_report(stem: str, text: str, curves: list[list[dict[str, Any]]]) -> No
         writer.writeheader()
         for curve in curves:
             writer.writerows(curve)
+
+
+def plot_learning_curves(panels: dict[str, tuple[list[list[dict[str, Any]]], float, str]], filename: str) -> None:
+    """One panel per entry: each run's evaluation returns, their mean, and a reference line;
+    saved as results/<filename> with the command in the title. Needs matplotlib (extra ``plots``).
+
+    :param panels: title -> (runs, each a list of rows with ``steps`` and ``return_mean``;
+        reference value; reference label)
+    :param filename: the PNG file name
+    """
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib not installed: no figure (pip install -e '.[plots]')")
+        return
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.5 * len(panels), 3.6), squeeze=False)
+    for ax, (title, (runs, reference, reference_label)) in zip(axes[0], panels.items(), strict=True):
+        steps = [row["steps"] for row in runs[0]]
+        for run in runs:
+            ax.plot(steps, [row["return_mean"] for row in run], alpha=0.35)
+        mean = [sum(run[i]["return_mean"] for run in runs) / len(runs) for i in range(len(steps))]
+        ax.plot(steps, mean, color="black", linewidth=2, label=f"mean of {len(runs)} seeds")
+        ax.axhline(reference, color="red", linestyle="--", label=reference_label)
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel("env steps")
+        ax.set_ylabel("evaluation return (10 episodes)")
+        ax.legend(fontsize=8)
+    fig.suptitle(command_line().replace("`", ""), fontsize=7)
+    fig.tight_layout()
+    fig.savefig(RESULTS / filename, dpi=100)

@@ -6,7 +6,7 @@ deterministic policy from random starts on a separate env. The table reports the
 evaluation (the last policy, not the best one seen) as mean +- std over seeds, the targets of
 issue 2, and the first step count at which an evaluation reached the target. Writes
 results/learning_quality.md, results/learning_quality.csv and, with matplotlib,
-results/learning_curves.png.
+results/learning_quality.png.
 
     python benchmarks/learning_quality.py --envs pendulum cartpole --seeds 0 1 2 [--workers 2]
 """
@@ -22,7 +22,7 @@ from typing import Any
 
 import gymnasium as gym
 import torch
-from common import RESULTS, command_line, compose_config, markdown_table, write_report
+from common import command_line, compose_config, markdown_table, plot_learning_curves, write_report
 from omegaconf import OmegaConf
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.logger import configure
@@ -100,32 +100,6 @@ def summarise(env_name: str, curves: list[list[dict[str, Any]]]) -> list[Any]:
     ]
 
 
-def plot(curves: dict[str, list[list[dict[str, Any]]]]) -> None:
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib not installed: no figure (pip install -e '.[plots]')")
-        return
-    fig, axes = plt.subplots(1, len(curves), figsize=(4.5 * len(curves), 3.5), squeeze=False)
-    for ax, (env_name, runs) in zip(axes[0], curves.items(), strict=True):
-        for run in runs:
-            ax.plot([r["steps"] for r in run], [r["return_mean"] for r in run], alpha=0.4)
-        steps = [r["steps"] for r in runs[0]]
-        means = [statistics.mean(run[i]["return_mean"] for run in runs) for i in range(len(steps))]
-        ax.plot(steps, means, color="black", linewidth=2, label="mean")
-        ax.axhline(TARGETS[env_name][0], color="red", linestyle="--", label="target")
-        ax.set_title(env_name)
-        ax.set_xlabel("env steps")
-        ax.set_ylabel("evaluation return (10 episodes)")
-        ax.legend()
-    fig.suptitle(command_line(), fontsize=8)
-    fig.tight_layout()
-    fig.savefig(RESULTS / "learning_curves.png", dpi=100)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--envs", nargs="+", default=list(TARGETS), choices=list(TARGETS))
@@ -159,7 +133,8 @@ def main() -> None:
         f"the target. Wall-clock {time.perf_counter() - start:.0f} s on this machine with {args.workers} workers.\n\n{table}\n"
     )
     write_report("learning_quality", text, results)
-    plot(curves)
+    panels = {name: (runs, TARGETS[name][0], "target") for name, runs in curves.items()}
+    plot_learning_curves(panels, "learning_quality.png")
 
 
 if __name__ == "__main__":

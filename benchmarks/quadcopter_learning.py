@@ -18,8 +18,7 @@ from functools import partial
 from typing import Any
 
 import gymnasium as gym
-import numpy as np
-from common import RESULTS, command_line, markdown_table, write_report
+from common import command_line, markdown_table, plot_learning_curves, write_report
 from learning_quality import train_with_evaluations
 
 from cme_agent.envs import QuadcopterPController
@@ -53,36 +52,6 @@ def controller_statistics(seed: int) -> dict[str, float]:
 
 def run_seed(seed: int, steps: int, period: int, overrides: list[str]) -> list[dict[str, Any]]:
     return train_with_evaluations("quadcopter", seed, overrides, steps, period, flight_statistics)
-
-
-def plot(curves: list[list[dict[str, Any]]], reference: float) -> None:
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib not installed: no figure (pip install -e '.[plots]')")
-        return
-    fig, ax = plt.subplots(figsize=(6, 4))
-    steps = [row["steps"] for row in curves[0]]
-    for curve in curves:
-        ax.plot(steps, [row["return_mean"] for row in curve], color="tab:blue", alpha=0.3)
-    ax.plot(
-        steps,
-        np.mean([[row["return_mean"] for row in c] for c in curves], axis=0),
-        color="tab:blue",
-        linewidth=2,
-        label="CME (mean)",
-    )
-    ax.axhline(reference, color="black", linestyle="--", label="scripted controller")
-    ax.set_xlabel("env steps")
-    ax.set_ylabel("evaluation return (10 episodes)")
-    ax.set_title("Quadcopter-v0", fontsize=10)
-    ax.legend()
-    fig.suptitle(command_line(), fontsize=7)
-    fig.tight_layout()
-    fig.savefig(RESULTS / "quadcopter_learning.png", dpi=100)
 
 
 def main() -> None:
@@ -122,7 +91,7 @@ def main() -> None:
         f"{markdown_table(header, rows)}\n"
     )
     write_report("quadcopter_learning", text, curves)
-    plot(curves, reference)
+    plot_learning_curves({"Quadcopter-v0": (curves, reference, "scripted controller")}, "quadcopter_learning.png")
 
 
 if __name__ == "__main__":
