@@ -338,7 +338,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
                 env_index = int(np.flatnonzero(bad)[0])
                 raise ValueError(
                     f"the env returned a non-finite {name} at step {self.num_timesteps} (env {env_index}): "
-                    f"{np.asarray(values)[env_index]!r}; learning stopped before it reached the model"
+                    f"{np.asarray(values)[env_index].tolist()}; learning stopped before it reached the model"
                 )
         held_out = self._np_rng.random(len(dones)) < self.model_update_config.holdout_fraction
         for store, mask in ((self.store, ~held_out), (self.holdout, held_out)):

@@ -116,3 +116,32 @@ def test_feature_budget_caps_q(pendulum_kwargs):
     model.learn(500)
     assert model.n_features == 30
     assert model.model.weights.shape[1] == model.policy.theta_psi.shape[0] == 30
+
+
+def test_non_finite_reward_stops_learning(pendulum_kwargs):
+    class InfiniteReward(gym.Wrapper):
+        def step(self, action):
+            obs, reward, terminated, truncated, info = self.env.step(action)
+            return obs, float("inf"), terminated, truncated, info
+
+    model = CMEPolicyIteration("CMEPolicy", InfiniteReward(gym.make("Pendulum-v1")), seed=0, **pendulum_kwargs)
+    model.set_logger(configure(None, []))
+    with pytest.raises(ValueError, match=r"non-finite reward at step 1 \(env 0\): inf"):
+        model.learn(100)
+    assert len(model.store) + len(model.holdout) == 0
+
+
+def test_diverging_model_update_is_undone_and_backed_off(pendulum_kwargs, monkeypatch):
+    model = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=0, **pendulum_kwargs)
+    model.set_logger(configure(None, []))
+    model.learn(200)
+    weights = model.model.weights.clone()
+
+    def explode(weights, psi, targets, learning_rate, l2):
+        weights.mul_(1e30)
+
+    monkeypatch.setattr("cme_agent.algorithm.sgd_step", explode)
+    with pytest.warns(RuntimeWarning, match="model update diverged"):
+        model.model_update()
+    assert torch.equal(model.model.weights, weights)
+    assert model.model_step_scale == 0.5
