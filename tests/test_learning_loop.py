@@ -121,7 +121,7 @@ def test_feature_budget_caps_q(pendulum_kwargs):
 def test_non_finite_reward_stops_learning(pendulum_kwargs):
     class InfiniteReward(gym.Wrapper):
         def step(self, action):
-            obs, reward, terminated, truncated, info = self.env.step(action)
+            obs, _, terminated, truncated, info = self.env.step(action)
             return obs, float("inf"), terminated, truncated, info
 
     model = CMEPolicyIteration("CMEPolicy", InfiniteReward(gym.make("Pendulum-v1")), seed=0, **pendulum_kwargs)
