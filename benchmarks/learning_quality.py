@@ -106,6 +106,7 @@ def main() -> None:
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--overrides", nargs="*", default=[], help="Hydra overrides for every run")
+    parser.add_argument("--stem", default="learning_quality", help="name of the results/<stem>.{md,csv,png} files")
     args = parser.parse_args()
     jobs = [(env_name, seed, args.overrides) for env_name in args.envs for seed in args.seeds]
     start = time.perf_counter()
@@ -132,9 +133,9 @@ def main() -> None:
         f"training step (random starts, seeded apart from training); 'steps to target' = first evaluation at or above "
         f"the target. Wall-clock {time.perf_counter() - start:.0f} s on this machine with {args.workers} workers.\n\n{table}\n"
     )
-    write_report("learning_quality", text, results)
+    write_report(args.stem, text, results)
     panels = {name: (runs, TARGETS[name][0], "target") for name, runs in curves.items()}
-    plot_learning_curves(panels, "learning_quality.png")
+    plot_learning_curves(panels, f"{args.stem}.png")
 
 
 if __name__ == "__main__":
