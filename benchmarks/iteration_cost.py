@@ -122,7 +122,7 @@ def main() -> None:
             values = [sum(t.values()) if phase == "total" else t.get(phase, 0.0) for t in timings[name]]
             medians.append(statistics.median(values))
         rows.append([phase, f"{medians[0]:.4f}", f"{medians[1]:.4f}", f"{medians[1] / max(medians[0], 1e-9):.2f}"])
-    header = ["phase", f"s at |D|={len(small.store)}", f"s at |D|={len(large.store)}", "ratio"]
+    header = ["phase", f"s at \\|D\\|={len(small.store)}", f"s at \\|D\\|={len(large.store)}", "ratio"]
     table = markdown_table(header, rows)
     mp_seconds = matching_pursuit_seconds(args.repeats)
     text = (
