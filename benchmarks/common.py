@@ -78,7 +78,7 @@ def plot_learning_curves(panels: dict[str, tuple[list[list[dict[str, Any]]], flo
     except ImportError:
         print("matplotlib not installed: no figure (pip install -e '.[plots]')")
         return
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.5 * len(panels), 3.6), squeeze=False)
+    fig, axes = plt.subplots(1, len(panels), figsize=(max(4.5 * len(panels), 7.0), 3.6), squeeze=False)
     for ax, (title, (runs, reference, reference_label)) in zip(axes[0], panels.items(), strict=True):
         steps = [row["steps"] for row in runs[0]]
         for run in runs:
