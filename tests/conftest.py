@@ -2,9 +2,15 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from pathlib import Path
 from typing import Any
 
 import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
 
 PENDULUM_POLICY = {"phi": {"resolution": [9, 7]}, "observation": {"angle_pairs": [[0, 1]]}}
 CARTPOLE_POLICY = {
@@ -35,3 +41,10 @@ def pendulum_kwargs() -> dict[str, Any]:
 @pytest.fixture
 def cartpole_kwargs() -> dict[str, Any]:
     return small_kwargs(policy_kwargs=CARTPOLE_POLICY)
+
+
+def run_train(run_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
+    """``python train.py <overrides>`` writing into ``run_dir``, one BLAS thread (a shared machine)."""
+    command = [sys.executable, str(ROOT / "train.py"), f"hydra.run.dir={run_dir}", *overrides]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    return subprocess.run(command, capture_output=True, text=True, timeout=300, cwd=run_dir.parent, env=env)

@@ -10,6 +10,7 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 from cme_agent.experiment import make_env
+from tests.conftest import run_train
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV_CONFIGS = sorted(p.stem for p in (ROOT / "conf" / "env").glob("*.yaml"))
@@ -43,13 +44,8 @@ def test_agent_env_specialisation_and_overrides():
     assert _compose(["env=cartpole"]).agent.gamma == 0.99
 
 
-def _train(tmp_path, *overrides):
-    command = [sys.executable, str(ROOT / "train.py"), f"hydra.run.dir={tmp_path}", *overrides]
-    return subprocess.run(command, capture_output=True, text=True, timeout=300, cwd=tmp_path)
-
-
 def test_train_writes_events_model_and_summary(tmp_path):
-    result = _train(
+    result = run_train(
         tmp_path,
         "total_timesteps=300",
         "eval_episodes=2",
@@ -77,7 +73,7 @@ def test_train_writes_events_model_and_summary(tmp_path):
     ],
 )
 def test_train_refuses_bad_configuration_clearly(tmp_path, override, message):
-    result = _train(tmp_path, override)
+    result = run_train(tmp_path, override)
     assert result.returncode != 0
     assert message in result.stderr + result.stdout
     assert "Traceback" not in result.stderr

@@ -3,9 +3,6 @@ hyperparameters per env (conf/agent_env/<agent>_<env>.yaml)."""
 
 import inspect
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +19,7 @@ from stable_baselines3.common.type_aliases import TrainFrequencyUnit
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from cme_agent.experiment import build_agent, make_env
+from tests.conftest import run_train
 
 ROOT = Path(__file__).resolve().parents[1]
 SB3_AGENTS = ("sac", "td3", "ppo", "dqn")
@@ -108,16 +106,9 @@ def test_td3_exploration_noise_and_episodic_updates_are_instantiated() -> None:
         model.env.close()
 
 
-def _train(run_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
-    """``python train.py`` into ``run_dir``; one torch thread (tiny nets, a shared machine)."""
-    command = [sys.executable, str(ROOT / "train.py"), f"hydra.run.dir={run_dir}", *overrides]
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    return subprocess.run(command, capture_output=True, text=True, timeout=300, cwd=run_dir.parent, env=env)
-
-
 def test_train_py_runs_ppo_and_writes_summary_and_tensorboard(tmp_path: Path) -> None:
     run_dir = tmp_path / "run"
-    result = _train(
+    result = run_train(
         run_dir,
         "agent=ppo",
         "env=cartpole",
@@ -138,7 +129,7 @@ def test_train_py_runs_ppo_and_writes_summary_and_tensorboard(tmp_path: Path) ->
 
 
 def test_train_py_refuses_an_agent_that_cannot_act_in_the_env(tmp_path: Path) -> None:
-    result = _train(tmp_path / "run", "agent=dqn", "env=pendulum", "verbose=0")
+    result = run_train(tmp_path / "run", "agent=dqn", "env=pendulum", "verbose=0")
     assert result.returncode != 0
     output = result.stdout + result.stderr
     assert "only supports" in output and "Discrete" in output and "Box" in output
