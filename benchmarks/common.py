@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import resource
 import shlex
 import subprocess
 import sys
@@ -40,6 +41,12 @@ def code_version() -> str:
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
     return commit.stdout.strip() + ("+changes" if dirty.stdout.strip() else "")
+
+
+def resident_bytes() -> int:
+    """Current resident set size of this process (Linux), in bytes."""
+    with open("/proc/self/statm") as handle:
+        return int(handle.read().split()[1]) * resource.getpagesize()
 
 
 def markdown_table(header: list[str], rows: list[list[Any]]) -> str:

@@ -13,24 +13,17 @@ from __future__ import annotations
 
 import argparse
 import csv
-import resource
 import statistics
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
-from common import RESULTS, command_line, compose_config
+from common import RESULTS, command_line, compose_config, resident_bytes
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import configure
 
 from cme_agent.experiment import build_agent, make_env
-
-
-def resident_bytes() -> int:
-    """Current resident set size of this process (Linux), in bytes."""
-    with open("/proc/self/statm") as handle:
-        return int(handle.read().split()[1]) * resource.getpagesize()
 
 
 class IterationRecorder(BaseCallback):
@@ -74,30 +67,20 @@ class IterationRecorder(BaseCallback):
         return True
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--steps", type=int, default=200_000)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--overrides", nargs="*", default=[])
-    args = parser.parse_args()
-    torch.set_num_threads(1)
-    cfg = compose_config([f"seed={args.seed}", "verbose=0", *args.overrides])
-    model = build_agent(cfg, make_env(cfg))
-    model.set_logger(configure(None, []))
-    RESULTS.mkdir(exist_ok=True)
-    recorder = IterationRecorder(RESULTS / "endurance.csv")
-    model.learn(args.steps, callback=recorder)
-    rows = recorder.rows
+def report(rows: list[dict[str, float]], steps: int, seed: int) -> None:
+    """Write results/endurance.md (and .png) from the per-iteration rows of a run."""
     transitions = np.array([row["transitions"] for row in rows], dtype=float)
     rss = np.array([row["rss_bytes"] for row in rows], dtype=float)
     slope = np.polyfit(transitions[len(rows) // 10 :], rss[len(rows) // 10 :], 1)[0]
     tenth = max(len(rows) // 10, 1)
     early = statistics.median(row["cpu_seconds"] for row in rows[tenth : 2 * tenth])
     late = statistics.median(row["cpu_seconds"] for row in rows[-tenth:])
+    reached = f"{rows[-1]['transitions']:.0f} of {steps}"
     text = (
-        f"# Endurance: {args.steps} env steps on Pendulum-v1\n\n"
-        f"Command: `{command_line()}` (seed {args.seed}, 1 torch thread).\n\n"
-        f"- iterations: {len(rows)}; q at the end: {rows[-1]['q']}\n"
+        f"# Endurance: {steps} env steps on Pendulum-v1\n\n"
+        f"Command: `{command_line()}` (seed {seed}, 1 torch thread; `--report-only` redraws from the CSV of "
+        f"`--steps {steps}`). Env steps recorded: {reached}.\n\n"
+        f"- iterations: {len(rows)}; q at the end: {rows[-1]['q']:.0f}\n"
         f"- transition store: {rows[-1]['store_bytes'] / rows[-1]['transitions']:.1f} bytes allocated per transition "
         f"(doubling capacity), {rows[-1]['store_bytes'] / 2**20:.1f} MiB at the end\n"
         f"- resident memory: {rss[0] / 2**20:.0f} MiB after the first iteration, {rss[-1] / 2**20:.0f} MiB at the end; "
@@ -129,6 +112,29 @@ def main() -> None:
     fig.suptitle(command_line(), fontsize=8)
     fig.tight_layout()
     fig.savefig(RESULTS / "endurance.png", dpi=100)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--steps", type=int, default=200_000)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--overrides", nargs="*", default=[])
+    parser.add_argument("--report-only", action="store_true", help="redraw from results/endurance.csv, train nothing")
+    args = parser.parse_args()
+    if args.report_only:
+        with open(RESULTS / "endurance.csv", newline="") as handle:
+            report(
+                [{key: float(value) for key, value in row.items()} for row in csv.DictReader(handle)], args.steps, args.seed
+            )
+        return
+    torch.set_num_threads(1)
+    cfg = compose_config([f"seed={args.seed}", "verbose=0", *args.overrides])
+    model = build_agent(cfg, make_env(cfg))
+    model.set_logger(configure(None, []))
+    RESULTS.mkdir(exist_ok=True)
+    recorder = IterationRecorder(RESULTS / "endurance.csv")
+    model.learn(args.steps, callback=recorder)
+    report(recorder.rows, args.steps, args.seed)
 
 
 if __name__ == "__main__":

@@ -25,7 +25,7 @@ import torch
 from common import command_line, compose_config, markdown_table, plot_learning_curves, write_report
 from omegaconf import OmegaConf
 from stable_baselines3.common.evaluation import evaluate_policy
-from stable_baselines3.common.logger import configure
+from stable_baselines3.common.logger import Logger, configure
 from stable_baselines3.common.monitor import Monitor
 
 from cme_agent.experiment import build_agent, make_env
@@ -52,13 +52,17 @@ def train_with_evaluations(
     budget: int,
     period: int,
     evaluate: Callable[[Any, gym.Env], dict[str, float]] = lambda model, env: episode_returns(model, env, 10),
+    logger: Logger | None = None,
 ) -> list[dict[str, Any]]:
     """Train the Hydra config ``env=<env_name>`` for ``budget`` steps, evaluating every ``period``
-    steps on a separate env seeded apart from training; one row per evaluation."""
+    steps on a separate env seeded apart from training; one row per evaluation.
+
+    :param logger: the agent's logger (default: one that writes nothing)
+    """
     torch.set_num_threads(1)
     cfg = compose_config([f"env={env_name}", f"seed={seed}", "verbose=0", *overrides])
     model = build_agent(cfg, make_env(cfg))
-    model.set_logger(configure(None, []))
+    model.set_logger(configure(None, []) if logger is None else logger)
     eval_env = Monitor(gym.make(cfg.env.id, **OmegaConf.to_container(cfg.env.kwargs)))
     eval_env.reset(seed=10_000 + seed)
     rows, train_seconds = [], 0.0
@@ -66,7 +70,8 @@ def train_with_evaluations(
         start = time.perf_counter()
         model.learn(min(period, budget - model.num_timesteps), reset_num_timesteps=False)
         train_seconds += time.perf_counter() - start
-        row = {"env": env_name, "seed": seed, "steps": model.num_timesteps, **evaluate(model, eval_env)}
+        row = {"env": env_name, "seed": seed, "steps": model.num_timesteps, "iteration": getattr(model, "iteration", None)}
+        row.update(evaluate(model, eval_env))
         row.update(n_features=getattr(model, "n_features", 0), train_seconds=round(train_seconds, 1))
         rows.append(row)
         print(
