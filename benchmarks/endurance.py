@@ -6,7 +6,11 @@ seconds the iteration took (all phases). Memory should grow only with the store 
 bytes per transition) and time per iteration should stay flat. Writes results/endurance.csv,
 results/endurance.md and, with matplotlib, results/endurance.png.
 
-    python benchmarks/endurance.py [--steps 200000]
+The run writes a resumable checkpoint every ``--checkpoint-every`` iterations; ``--resume``
+continues an interrupted run from it (the CSV keeps the rows up to the checkpoint's iteration;
+resident memory restarts from a fresh process, which the CSV's ``resumed`` column marks).
+
+    python benchmarks/endurance.py [--steps 200000] [--resume]
 """
 
 from __future__ import annotations
@@ -20,34 +24,46 @@ from pathlib import Path
 import numpy as np
 import torch
 from common import RESULTS, command_line, compose_config, resident_bytes
+from hydra.utils import get_class
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import configure
 
+from cme_agent.callbacks import IterationCheckpoint
 from cme_agent.experiment import build_agent, make_env
+
+CHECKPOINT = RESULTS / "endurance_checkpoint.zip"
 
 
 class IterationRecorder(BaseCallback):
     """Records one row per iteration, at the iteration boundary (``on_rollout_start``), and
     appends it to ``csv_path`` at once (a long run cut short keeps its rows).
 
-    :param csv_path: the CSV file (overwritten)
+    :param csv_path: the CSV file
+    :param rows: the rows already recorded (those of the run being resumed; empty for a new run);
+        the file is rewritten with them
     """
 
-    FIELDS = ("iteration", "transitions", "store_bytes", "rss_bytes", "q", "seconds", "cpu_seconds")
+    FIELDS = ("iteration", "transitions", "store_bytes", "rss_bytes", "q", "seconds", "cpu_seconds", "resumed")
 
-    def __init__(self, csv_path: Path) -> None:
+    def __init__(self, csv_path: Path, rows: list[dict[str, float]]) -> None:
         super().__init__()
-        self.rows: list[dict[str, float]] = []
+        self.rows = list(rows)
         self.csv_path = csv_path
         with open(csv_path, "w", newline="") as handle:
-            csv.DictWriter(handle, fieldnames=self.FIELDS).writeheader()
+            writer = csv.DictWriter(handle, fieldnames=self.FIELDS)
+            writer.writeheader()
+            writer.writerows(self.rows)
         self._last = time.perf_counter()
         self._last_cpu = time.process_time()
+        self._start = 0
+
+    def _init_callback(self) -> None:
+        self._start = self.model.iteration  # > 0 when resuming: that iteration's row is already recorded
 
     def _on_rollout_start(self) -> None:
         now, now_cpu = time.perf_counter(), time.process_time()
         model = self.model
-        if model.iteration > 0:
+        if model.iteration > self._start:
             self.rows.append(
                 {
                     "iteration": model.iteration,
@@ -57,6 +73,7 @@ class IterationRecorder(BaseCallback):
                     "q": model.n_features,
                     "seconds": now - self._last,
                     "cpu_seconds": now_cpu - self._last_cpu,
+                    "resumed": int(self._start > 0 and model.iteration == self._start + 1),
                 }
             )
             with open(self.csv_path, "a", newline="") as handle:
@@ -119,22 +136,34 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=200_000)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--overrides", nargs="*", default=[])
+    parser.add_argument("--checkpoint-every", type=int, default=10, help="iterations between checkpoints")
+    parser.add_argument("--resume", action="store_true", help=f"continue the run checkpointed in {CHECKPOINT.name}")
     parser.add_argument("--report-only", action="store_true", help="redraw from results/endurance.csv, train nothing")
     args = parser.parse_args()
     if args.report_only:
-        with open(RESULTS / "endurance.csv", newline="") as handle:
-            report(
-                [{key: float(value) for key, value in row.items()} for row in csv.DictReader(handle)], args.steps, args.seed
-            )
+        report(read_rows(), args.steps, args.seed)
         return
     torch.set_num_threads(1)
     cfg = compose_config([f"seed={args.seed}", "verbose=0", *args.overrides])
-    model = build_agent(cfg, make_env(cfg))
+    env = make_env(cfg)
+    if args.resume:
+        model = get_class(cfg.agent._target_).load(CHECKPOINT, env=env)
+        rows = [row for row in read_rows() if row["iteration"] <= model.iteration]
+        print(f"resuming from {CHECKPOINT} at iteration {model.iteration}, {model.num_timesteps} steps")
+    else:
+        model, rows = build_agent(cfg, env), []
     model.set_logger(configure(None, []))
     RESULTS.mkdir(exist_ok=True)
-    recorder = IterationRecorder(RESULTS / "endurance.csv")
-    model.learn(args.steps, callback=recorder)
+    recorder = IterationRecorder(RESULTS / "endurance.csv", rows)
+    checkpoint = IterationCheckpoint(CHECKPOINT, args.checkpoint_every)
+    model.learn(args.steps - model.num_timesteps, callback=[recorder, checkpoint], reset_num_timesteps=not args.resume)
     report(recorder.rows, args.steps, args.seed)
+
+
+def read_rows() -> list[dict[str, float]]:
+    """The rows of results/endurance.csv (a CSV written before the ``resumed`` column reads as never resumed)."""
+    with open(RESULTS / "endurance.csv", newline="") as handle:
+        return [{"resumed": 0.0, **{key: float(value) for key, value in row.items()}} for row in csv.DictReader(handle)]
 
 
 if __name__ == "__main__":
