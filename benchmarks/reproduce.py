@@ -271,6 +271,12 @@ def save_figure(fig: Any, path: Path) -> None:
     fig.savefig(path, dpi=100)
 
 
+def provenance(runs_dir: Path) -> str:
+    """The command drawing a figure and the commits of the code that made the saved runs it draws."""
+    commits = sorted({json.loads(path.read_text())["commit"] for path in runs_dir.glob("*.json")})
+    return f"Command: `{command_line()}`. Runs (in `{runs_dir.name}/`) made at commit `{', '.join(commits) or 'none'}`."
+
+
 def write_text(path: Path, text: str) -> None:
     print(text)
     path.write_text(text)
@@ -314,7 +320,7 @@ def figure1(profile: Profile, runs_dir: Path) -> None:
     ]
     write_text(
         profile.out / "figure1.md",
-        f"# Figure 1: return per iteration, MP vs Kernel\n\nCommand: `{command_line()}`\n\n"
+        f"# Figure 1: return per iteration, MP vs Kernel\n\n{provenance(runs_dir)}\n\n"
         "Evaluation return (10 episodes of the deterministic policy, random starts) at the last iteration, mean +- "
         "standard error over seeds; 'mean over curve' averages the mean curve over all evaluated iterations. MP collects "
         "agent=cme's steps per iteration, Kernel half as many.\n\n"
@@ -332,12 +338,15 @@ def figure2(profile: Profile, runs_dir: Path) -> None:
         shared = min(len(run["iterations"]) for run in runs)
         seconds = [statistics.median(model_seconds(run["iterations"][i]) for run in runs) for i in range(shared)]
         sizes = [runs[0]["iterations"][i]["transitions"] for i in range(shared)]
+        features = [statistics.median(run["iterations"][i]["q"] for run in runs) for i in range(shared)]
         early, late = statistics.median(seconds[3:6]), statistics.median(seconds[-3:])
+        q_early, q_late = statistics.median(features[3:6]), statistics.median(features[-3:])
         series[label] = (sizes, seconds)
         lines.append(
             f"- {label} ({len(runs)} seeds, median over seeds): {early * 1000:.1f} ms at iterations 4-6, {late * 1000:.1f} ms "
             f"at the last 3 (of {shared}); ratio {late / early:.2f}; fitted growth exponent in |D| "
-            f"{growth_exponent(sizes, seconds):.2f}; q at the end {runs[0]['iterations'][-1]['q']:.0f}"
+            f"{growth_exponent(sizes, seconds):.2f}; q {q_early:.0f} at iterations 4-6, {q_late:.0f} at the last 3, "
+            f"so per feature the ratio is {(late / q_late) / (early / q_early):.2f}"
         )
     scaling = load_runs(runs_dir, "cme", "mountain_car", [0], tag="scaling")
     if scaling:
@@ -360,7 +369,7 @@ def figure2(profile: Profile, runs_dir: Path) -> None:
         )
     write_text(
         profile.out / "figure2.md",
-        f"# Figure 2: model-learning time per iteration\n\nCommand: `{command_line()}`\n\n"
+        f"# Figure 2: model-learning time per iteration\n\n{provenance(runs_dir)}\n\n"
         "Model-learning time = feature selection + model update (wall-clock, one torch thread; the machine is shared, "
         "so medians). Acceptance of issue 4: MP's last iteration within 1.5x of iteration 5, Kernel's growing more than "
         "10x.\n\n" + "\n".join(lines) + "\n\n![figure 2](figure2.png)\n",
@@ -413,7 +422,7 @@ def figure3(profile: Profile, runs_dir: Path) -> None:
     header = ["seed", "CME return", "controller return", "fraction", "CME final distance (m)"]
     write_text(
         profile.out / "figure3.md",
-        f"# Figure 3: Quadcopter-v0\n\nCommand: `{command_line()}`\n\n"
+        f"# Figure 3: Quadcopter-v0\n\n{provenance(runs_dir)}\n\n"
         f"Final evaluation after {runs[0]['run']['steps']} env steps (10 episodes, random starts); fraction of the scripted "
         f"controller's return on the same starts: {mean:.2f} +- {se:.2f} (mean +- SE over {len(runs)} seeds).\n\n"
         f"{markdown_table(header, rows)}\n\n![figure 3](figure3.png)\n",
@@ -497,7 +506,7 @@ def sample_efficiency(profile: Profile, runs_dir: Path) -> None:
     ]
     write_text(
         profile.out / "sample_efficiency.md",
-        f"# Sample efficiency: env steps to each env's threshold\n\nCommand: `{command_line()}`\n\n"
+        f"# Sample efficiency: env steps to each env's threshold\n\n{provenance(runs_dir)}\n\n"
         f"Seeds {list(profile.table_seeds)}. Steps (and training wall-clock seconds) to the first evaluation (10 episodes, "
         "deterministic policy) at or above the threshold: median over the seeds that reached it within the budget, and "
         "how many did. Final return: mean +- std over seeds at the end of the budget. 'Best SB3' is the SB3 algorithm "
