@@ -419,12 +419,17 @@ def figure3(profile: Profile, runs_dir: Path) -> None:
         for seed, final, c, fraction in zip(seeds, finals, controller, fractions, strict=True)
     ]
     mean, se = mean_and_se(fractions)
+    spread = statistics.stdev(fractions) if len(fractions) > 1 else 0.0
+    distances = [final["final_distance"] for final in finals]
     header = ["seed", "CME return", "controller return", "fraction", "CME final distance (m)"]
     write_text(
         profile.out / "figure3.md",
         f"# Figure 3: Quadcopter-v0\n\n{provenance(runs_dir)}\n\n"
         f"Final evaluation after {runs[0]['run']['steps']} env steps (10 episodes, random starts); fraction of the scripted "
-        f"controller's return on the same starts: {mean:.2f} +- {se:.2f} (mean +- SE over {len(runs)} seeds).\n\n"
+        f"controller's return on the same starts: {mean:.2f} +- {se:.2f} (mean +- SE over {len(runs)} seeds; "
+        f"std {spread:.2f}, {sum(f >= 0.8 for f in fractions)} of {len(runs)} seeds at 0.80 or more). "
+        f"Final distance to the target: median {statistics.median(distances):.2f} m, "
+        f"range {min(distances):.2f} to {max(distances):.2f} m.\n\n"
         f"{markdown_table(header, rows)}\n\n![figure 3](figure3.png)\n",
     )
     plt = pyplot()
