@@ -34,7 +34,7 @@ import statistics
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
-from functools import partial
+from functools import cache, partial
 from pathlib import Path
 from typing import Any
 
@@ -133,8 +133,14 @@ def policy_iteration_run(agent: str, env: str, seed: int, profile: Profile) -> R
     iterations, period = ITERATIONS[env]
     iterations = max(math.ceil(iterations * profile.scale), 2)
     period = max(min(period, iterations // 2), 1)
-    per_iteration = compose_config([f"agent={agent}", f"env={env}"]).agent.steps_per_iteration
+    per_iteration = steps_per_iteration(agent, env)
     return Run(agent, env, seed, iterations * per_iteration, period * per_iteration)
+
+
+@cache
+def steps_per_iteration(agent: str, env: str) -> int:
+    """Env steps per iteration of agent=cme or agent=kernel on ``env`` (composing a config takes a while)."""
+    return int(compose_config([f"agent={agent}", f"env={env}"]).agent.steps_per_iteration)
 
 
 def planned_runs(parts: Sequence[str], profile: Profile) -> list[Run]:
