@@ -518,7 +518,8 @@ def sample_efficiency(profile: Profile, runs_dir: Path) -> None:
     write_text(
         profile.out / "sample_efficiency.md",
         f"# Sample efficiency: env steps to each env's threshold\n\n{provenance(runs_dir)}\n\n"
-        f"Seeds {list(profile.table_seeds)}. Steps (and training wall-clock seconds) to the first evaluation (10 episodes, "
+        f"Seeds {list(profile.table_seeds)} (n in 'k/n' counts those with a saved run). "
+        "Steps (and training wall-clock seconds) to the first evaluation (10 episodes, "
         "deterministic policy) at or above the threshold: median over the seeds that reached it within the budget, and "
         "how many did. Final return: mean +- std over seeds at the end of the budget. 'Best SB3' is the SB3 algorithm "
         "that reached the threshold on the most seeds, then in the fewest steps.\n\n"
