@@ -425,7 +425,7 @@ def figure3(profile: Profile, runs_dir: Path) -> None:
         for seed, final, c, fraction in zip(seeds, finals, controller, fractions, strict=True)
     ]
     mean, se = mean_and_se(fractions)
-    spread = statistics.stdev(fractions) if len(fractions) > 1 else 0.0
+    spread = se * math.sqrt(len(fractions))  # the std over seeds
     distances = [final["final_distance"] for final in finals]
     header = ["seed", "CME return", "controller return", "fraction", "CME final distance (m)"]
     write_text(

@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import math
 import sys
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import pytest
@@ -24,7 +24,7 @@ def saved_run(agent: str, env: str, seed: int, returns: list[float], period: int
         for i, value in enumerate(returns)
     ]
     run = reproduce.Run(agent, env, seed, len(returns) * period, period)
-    return {"run": reproduce.asdict(run), "commit": "test", "seconds": 1.0, "evaluations": evaluations, "iterations": []}
+    return {"run": asdict(run), "commit": "test", "seconds": 1.0, "evaluations": evaluations, "iterations": []}
 
 
 @pytest.mark.parametrize("exponent", [0.0, 1.0, 3.0])
