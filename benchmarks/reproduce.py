@@ -410,6 +410,24 @@ def figure2(profile: Profile, runs_dir: Path) -> None:
     save_figure(fig, profile.out / "figure2.png")
 
 
+def collapse_distances(runs: list[dict[str, Any]], reference: float, from_steps: int) -> tuple[list[float], list[float]]:
+    """Final distances to the target (m) of the evaluations from ``from_steps`` env steps on, split
+    into collapses (return under half of ``reference``, the controller's) and the others."""
+    collapsed, others = [], []
+    for run in runs:
+        for row in run["evaluations"]:
+            if row["steps"] >= from_steps:
+                (collapsed if row["return_mean"] < reference / 2 else others).append(row["final_distance"])
+    return collapsed, others
+
+
+def distance_summary(distances: Sequence[float]) -> str:
+    """``median M m (range A to B m)`` of final distances, or ``none``."""
+    if not distances:
+        return "none"
+    return f"median {statistics.median(distances):.2f} m (range {min(distances):.2f} to {max(distances):.2f} m)"
+
+
 def figure3(profile: Profile, runs_dir: Path) -> None:
     """Quadcopter return per iteration: each run, their mean, the scripted controller's return."""
     runs = load_runs(runs_dir, "cme", "quadcopter", profile.figure_seeds)
@@ -427,6 +445,8 @@ def figure3(profile: Profile, runs_dir: Path) -> None:
     mean, se = mean_and_se(fractions)
     spread = se * math.sqrt(len(fractions))  # the std over seeds
     distances = [final["final_distance"] for final in finals]
+    second_half = runs[0]["run"]["steps"] // 2
+    collapsed, others = collapse_distances(runs, reference, second_half)
     header = ["seed", "CME return", "controller return", "fraction", "CME final distance (m)"]
     write_text(
         profile.out / "figure3.md",
@@ -434,8 +454,10 @@ def figure3(profile: Profile, runs_dir: Path) -> None:
         f"Final evaluation after {runs[0]['run']['steps']} env steps (10 episodes, random starts); fraction of the scripted "
         f"controller's return on the same starts: {mean:.2f} +- {se:.2f} (mean +- SE over {len(runs)} seeds; "
         f"std {spread:.2f}, {sum(f >= 0.8 for f in fractions)} of {len(runs)} seeds at 0.80 or more). "
-        f"Final distance to the target: median {statistics.median(distances):.2f} m, "
-        f"range {min(distances):.2f} to {max(distances):.2f} m.\n\n"
+        f"Final distance to the target: {distance_summary(distances)}.\n\n"
+        f"Collapses: of the {len(collapsed) + len(others)} evaluations from {second_half} steps on, {len(collapsed)} "
+        f"score under half the controller's return; their final distance to the target is {distance_summary(collapsed)}, "
+        f"that of the others {distance_summary(others)}.\n\n"
         f"{markdown_table(header, rows)}\n\n![figure 3](figure3.png)\n",
     )
     plt = pyplot()

@@ -100,3 +100,13 @@ def test_quick_plan_is_shorter_than_the_full_one() -> None:
     full = {run.name: run for run in reproduce.planned_runs(["figure1"], reproduce.PROFILES["full"])}
     assert set(quick) < set(full)
     assert all(quick[name].steps < full[name].steps for name in quick)
+
+
+def test_collapse_distances_split_the_second_half_by_half_the_reference() -> None:
+    run = saved_run("cme", "quadcopter", 0, [10.0, 150.0, 40.0, 160.0])
+    for row, distance in zip(run["evaluations"], [9.0, 0.5, 6.0, 0.7], strict=True):
+        row["final_distance"] = distance
+    collapsed, others = reproduce.collapse_distances([run], reference=180.0, from_steps=200)
+    assert collapsed == [6.0] and others == [0.5, 0.7]
+    assert reproduce.distance_summary(others) == "median 0.60 m (range 0.50 to 0.70 m)"
+    assert reproduce.distance_summary([]) == "none"
