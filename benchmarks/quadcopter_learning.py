@@ -14,12 +14,14 @@ from __future__ import annotations
 import argparse
 import multiprocessing
 import statistics
+from collections.abc import Sequence
 from functools import partial
 from typing import Any
 
 import gymnasium as gym
-from common import command_line, markdown_table, plot_learning_curves, write_report
+from common import command_line, compose_config, markdown_table, plot_learning_curves, write_report
 from learning_quality import train_with_evaluations
+from omegaconf import OmegaConf
 
 from cme_agent.envs import QuadcopterPController
 
@@ -44,8 +46,11 @@ def flight_statistics(model: Any, env: gym.Env, episodes: int = 10) -> dict[str,
     }
 
 
-def controller_statistics(seed: int) -> dict[str, float]:
-    env = gym.make("Quadcopter-v0")
+def controller_statistics(seed: int, overrides: Sequence[str] = ()) -> dict[str, float]:
+    """The scripted controller on the evaluation episodes of ``seed``, in the env the agent's runs
+    fly (``overrides`` such as ``env.kwargs.agent_dt=0.2`` apply to it too)."""
+    cfg = compose_config(["env=quadcopter", *overrides])
+    env = gym.make(cfg.env.id, **OmegaConf.to_container(cfg.env.kwargs))
     env.reset(seed=10_000 + seed)
     return flight_statistics(QuadcopterPController.from_env(env.unwrapped), env)
 
@@ -65,7 +70,7 @@ def main() -> None:
     job = partial(run_seed, steps=args.steps, period=args.eval_every, overrides=args.overrides)
     with multiprocessing.get_context("spawn").Pool(args.workers) as pool:
         curves = pool.map(job, args.seeds, chunksize=1)
-    controller = [controller_statistics(seed) for seed in args.seeds]
+    controller = [controller_statistics(seed, args.overrides) for seed in args.seeds]
     reference = statistics.mean(c["return_mean"] for c in controller)
     rows = []
     for seed, curve, ctrl in zip(args.seeds, curves, controller, strict=True):
