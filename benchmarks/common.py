@@ -32,11 +32,15 @@ def command_line() -> str:
 
 
 def code_version() -> str:
-    """``git describe``-like id of the code: the short commit hash, ``+changes`` if the tree is dirty."""
+    """``git describe``-like id of the code: the short commit hash, ``+changes`` if tracked files
+    outside ``results/`` differ from it (the outputs a run writes do not make its code dirty)."""
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True)
         dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True, text=True
+            ["git", "status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)results"],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
         )
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
