@@ -277,9 +277,9 @@ def save_figure(fig: Any, path: Path) -> None:
     fig.savefig(path, dpi=100)
 
 
-def provenance(runs_dir: Path) -> str:
-    """The command drawing a figure and the commits of the code that made the saved runs it draws."""
-    commits = sorted({json.loads(path.read_text())["commit"] for path in runs_dir.glob("*.json")})
+def provenance(runs_dir: Path, runs: Sequence[dict[str, Any]]) -> str:
+    """The command drawing a figure and the commits of the code that made the saved ``runs`` it draws."""
+    commits = sorted({run["commit"] for run in runs})
     return f"Command: `{command_line()}`. Runs (in `{runs_dir.name}/`) made at commit `{', '.join(commits) or 'none'}`."
 
 
@@ -292,13 +292,14 @@ def figure1(profile: Profile, runs_dir: Path) -> None:
     """Return per iteration, MP vs Kernel, mean and SE over seeds, on FIGURE1_ENVS."""
     plt = pyplot()
     fig, axes = (None, [None] * len(FIGURE1_ENVS)) if plt is None else plt.subplots(1, 3, figsize=(14, 3.8))
-    rows = []
+    rows, drawn = [], []
     for ax, env in zip(axes, FIGURE1_ENVS, strict=True):
         finals = {}
         for agent, label in (("cme", "MP"), ("kernel", "Kernel")):
             runs = load_runs(runs_dir, agent, env, profile.figure_seeds)
             if not runs:
                 continue
+            drawn += runs
             iterations, mean, se = curve(runs)
             finals[label] = (mean[-1], se[-1], len(runs), statistics.mean(mean))
             if ax is not None:
@@ -326,7 +327,7 @@ def figure1(profile: Profile, runs_dir: Path) -> None:
     ]
     write_text(
         profile.out / "figure1.md",
-        f"# Figure 1: return per iteration, MP vs Kernel\n\n{provenance(runs_dir)}\n\n"
+        f"# Figure 1: return per iteration, MP vs Kernel\n\n{provenance(runs_dir, drawn)}\n\n"
         "Evaluation return (10 episodes of the deterministic policy, random starts) at the last iteration, mean +- "
         "standard error over seeds; 'mean over curve' averages the mean curve over all evaluated iterations. MP collects "
         "agent=cme's steps per iteration, Kernel half as many.\n\n"
@@ -336,11 +337,12 @@ def figure1(profile: Profile, runs_dir: Path) -> None:
 
 def figure2(profile: Profile, runs_dir: Path) -> None:
     """Model-learning time per iteration on Mountain Car (MP vs Kernel) and MP's scaling run."""
-    lines, series = [], {}
+    lines, series, drawn = [], {}, []
     for agent, label in (("cme", "MP"), ("kernel", "Kernel")):
         runs = load_runs(runs_dir, agent, "mountain_car", profile.figure_seeds)
         if not runs:
             continue
+        drawn += runs
         shared = min(len(run["iterations"]) for run in runs)
         seconds = [statistics.median(model_seconds(run["iterations"][i]) for run in runs) for i in range(shared)]
         sizes = [runs[0]["iterations"][i]["transitions"] for i in range(shared)]
@@ -355,6 +357,7 @@ def figure2(profile: Profile, runs_dir: Path) -> None:
             f"so per feature the ratio is {(late / q_late) / (early / q_early):.2f}"
         )
     scaling = load_runs(runs_dir, "cme", "mountain_car", [0], tag="scaling")
+    drawn += scaling
     if scaling:
         rows = scaling[0]["iterations"]
         sizes = [row["transitions"] for row in rows]
@@ -375,7 +378,7 @@ def figure2(profile: Profile, runs_dir: Path) -> None:
         )
     write_text(
         profile.out / "figure2.md",
-        f"# Figure 2: model-learning time per iteration\n\n{provenance(runs_dir)}\n\n"
+        f"# Figure 2: model-learning time per iteration\n\n{provenance(runs_dir, drawn)}\n\n"
         "Model-learning time = feature selection + model update (wall-clock, one torch thread; the machine is shared, "
         "so medians). Acceptance of issue 4: MP's last iteration within 1.5x of iteration 5, Kernel's growing more than "
         "10x.\n\n" + "\n".join(lines) + "\n\n![figure 2](figure2.png)\n",
@@ -450,7 +453,7 @@ def figure3(profile: Profile, runs_dir: Path) -> None:
     header = ["seed", "CME return", "controller return", "fraction", "CME final distance (m)"]
     write_text(
         profile.out / "figure3.md",
-        f"# Figure 3: Quadcopter-v0\n\n{provenance(runs_dir)}\n\n"
+        f"# Figure 3: Quadcopter-v0\n\n{provenance(runs_dir, runs)}\n\n"
         f"Final evaluation after {runs[0]['run']['steps']} env steps (10 episodes, random starts); fraction of the scripted "
         f"controller's return on the same starts: {mean:.2f} +- {se:.2f} (mean +- SE over {len(runs)} seeds; "
         f"std {spread:.2f}, {sum(f >= 0.8 for f in fractions)} of {len(runs)} seeds at 0.80 or more). "
@@ -513,11 +516,13 @@ def efficiency_cells(name: str, stats: dict[str, Any]) -> list[Any]:
 
 def sample_efficiency(profile: Profile, runs_dir: Path) -> None:
     """Steps to each env's threshold: MP, Kernel, every SB3 algorithm, and the best SB3 one."""
-    best_rows, all_rows = [], []
+    best_rows, all_rows, drawn = [], [], []
     for env in profile.table_envs:
         threshold = TARGETS[env][0]
         agents = ["cme", "kernel", *SB3_AGENTS[env][0][: profile.sb3_agents]]
-        stats = {a: efficiency(runs, threshold) for a in agents if (runs := load_runs(runs_dir, a, env, profile.table_seeds))}
+        loaded = {a: runs for a in agents if (runs := load_runs(runs_dir, a, env, profile.table_seeds))}
+        drawn += [run for runs in loaded.values() for run in runs]
+        stats = {a: efficiency(runs, threshold) for a, runs in loaded.items()}
         sb3 = [a for a in stats if a not in ("cme", "kernel")]
         best = min(sb3, key=lambda a: (-stats[a]["reached"], stats[a]["steps"]), default=None)
         for agent in stats:
@@ -539,7 +544,7 @@ def sample_efficiency(profile: Profile, runs_dir: Path) -> None:
     ]
     write_text(
         profile.out / "sample_efficiency.md",
-        f"# Sample efficiency: env steps to each env's threshold\n\n{provenance(runs_dir)}\n\n"
+        f"# Sample efficiency: env steps to each env's threshold\n\n{provenance(runs_dir, drawn)}\n\n"
         f"Seeds {list(profile.table_seeds)} (n in 'k/n' counts those with a saved run). "
         "Steps (and training wall-clock seconds) to the first evaluation (10 episodes, "
         "deterministic policy) at or above the threshold: median over the seeds that reached it within the budget, and "

@@ -73,9 +73,12 @@ def test_sample_efficiency_names_the_sb3_algorithm_that_reached_on_most_seeds(tm
     }
     for (agent, seed), values in returns.items():
         (runs_dir / f"{agent}-pendulum-seed{seed}.json").write_text(json.dumps(saved_run(agent, "pendulum", seed, values)))
+    other = saved_run("cme", "quadcopter", 0, [100.0]) | {"commit": "elsewhere"}  # a run the table does not draw
+    (runs_dir / "cme-quadcopter-seed0.json").write_text(json.dumps(other))
     profile = replace(reproduce.PROFILES["quick"], table_seeds=(0, 1), table_envs=("pendulum",), sb3_agents=3, out=tmp_path)
     reproduce.sample_efficiency(profile, runs_dir)
     best, every = (tmp_path / "sample_efficiency.md").read_text().split("## Every algorithm")
+    assert "made at commit `test`." in best  # the commits of the runs drawn, not of every saved run
     assert "best SB3: TD3 | 200 (2/2)" in best and "SAC" not in best
     assert "| MP | 200 (2/2)" in best
     assert "Kernel" not in every  # no saved Kernel runs: no row rather than an empty one
