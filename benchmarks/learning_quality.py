@@ -23,12 +23,10 @@ from typing import Any
 import gymnasium as gym
 import torch
 from common import command_line, compose_config, markdown_table, plot_learning_curves, write_report
-from omegaconf import OmegaConf
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.logger import Logger, configure
-from stable_baselines3.common.monitor import Monitor
 
-from cme_agent.experiment import build_agent, make_env
+from cme_agent.experiment import build_agent, make_env, make_eval_env
 
 TARGETS = {  # env config: (target return, step budget, evaluation period)
     "pendulum": (-200.0, 6_000, 600),
@@ -63,8 +61,7 @@ def train_with_evaluations(
     cfg = compose_config([f"env={env_name}", f"seed={seed}", "verbose=0", *overrides])
     model = build_agent(cfg, make_env(cfg))
     model.set_logger(configure(None, []) if logger is None else logger)
-    eval_env = Monitor(gym.make(cfg.env.id, **OmegaConf.to_container(cfg.env.kwargs)))
-    eval_env.reset(seed=10_000 + seed)
+    eval_env = make_eval_env(cfg)
     rows, train_seconds = [], 0.0
     while model.num_timesteps < budget:
         start = time.perf_counter()

@@ -21,9 +21,9 @@ from typing import Any
 import gymnasium as gym
 from common import command_line, compose_config, markdown_table, plot_learning_curves, write_report
 from learning_quality import train_with_evaluations
-from omegaconf import OmegaConf
 
 from cme_agent.envs import QuadcopterPController
+from cme_agent.experiment import make_eval_env
 
 
 def flight_statistics(model: Any, env: gym.Env, episodes: int = 10) -> dict[str, float]:
@@ -49,9 +49,7 @@ def flight_statistics(model: Any, env: gym.Env, episodes: int = 10) -> dict[str,
 def controller_statistics(seed: int, overrides: Sequence[str] = ()) -> dict[str, float]:
     """The scripted controller on the evaluation episodes of ``seed``, in the env the agent's runs
     fly (``overrides`` such as ``env.kwargs.agent_dt=0.2`` apply to it too)."""
-    cfg = compose_config(["env=quadcopter", *overrides])
-    env = gym.make(cfg.env.id, **OmegaConf.to_container(cfg.env.kwargs))
-    env.reset(seed=10_000 + seed)
+    env = make_eval_env(compose_config(["env=quadcopter", f"seed={seed}", *overrides]))
     return flight_statistics(QuadcopterPController.from_env(env.unwrapped), env)
 
 

@@ -51,11 +51,18 @@ def resume_agent(cfg: DictConfig, env: VecEnv) -> BaseAlgorithm:
     return model
 
 
-def evaluate(model: BaseAlgorithm, cfg: DictConfig) -> tuple[float, float]:
-    """Mean and std of the return over ``cfg.eval_episodes`` episodes of the deterministic policy,
-    on a fresh env whose random starts are seeded apart from training's."""
+def make_eval_env(cfg: DictConfig) -> gym.Env:
+    """A fresh (Monitor-wrapped) ``cfg.env``, its random starts seeded apart from training's
+    (``cfg.seed + 10_000``): every evaluation of a seed, agent or reference controller, flies the same starts."""
     env = Monitor(gym.make(cfg.env.id, **OmegaConf.to_container(cfg.env.kwargs, resolve=True)))
     env.reset(seed=cfg.seed + 10_000)
+    return env
+
+
+def evaluate(model: BaseAlgorithm, cfg: DictConfig) -> tuple[float, float]:
+    """Mean and std of the return over ``cfg.eval_episodes`` episodes of the deterministic policy,
+    on :func:`make_eval_env`."""
+    env = make_eval_env(cfg)
     mean, std = evaluate_policy(model, env, n_eval_episodes=cfg.eval_episodes, deterministic=True)
     env.close()
     return float(mean), float(std)

@@ -9,7 +9,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from cme_agent.experiment import make_env
+from cme_agent.experiment import make_env, make_eval_env
 from tests.conftest import run_train
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -35,6 +35,16 @@ def test_env_config_composes_into_an_agent(env_name, agent_name):
     assert agent.gamma == cfg.agent.gamma
     assert agent.policy.phi.n_features > 1
     env.close()
+
+
+def test_eval_env_follows_the_config_and_its_starts_the_seed():
+    cfg = _compose(["env=pendulum", "seed=3"])
+    first, again = make_eval_env(cfg).reset()[0], make_eval_env(cfg).reset()[0]
+    assert first.tolist() == again.tolist()  # an agent and a reference fly the same starts
+    assert first.tolist() != make_env(cfg).reset()[0].tolist()  # not training's
+    assert first.tolist() != make_eval_env(_compose(["env=pendulum", "seed=4"])).reset()[0].tolist()
+    quadcopter = make_eval_env(_compose(["env=quadcopter", "env.kwargs.agent_dt=0.2"]))
+    assert quadcopter.unwrapped.agent_dt == 0.2  # overrides of env.kwargs reach the env
 
 
 def test_agent_env_specialisation_and_overrides():
