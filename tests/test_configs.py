@@ -43,8 +43,8 @@ def test_eval_env_follows_the_config_and_its_starts_the_seed():
     assert first.tolist() == again.tolist()  # an agent and a reference fly the same starts
     assert first.tolist() != make_env(cfg).reset()[0].tolist()  # not training's
     assert first.tolist() != make_eval_env(_compose(["env=pendulum", "seed=4"])).reset()[0].tolist()
-    quadcopter = make_eval_env(_compose(["env=quadcopter", "env.kwargs.agent_dt=0.2"]))
-    assert quadcopter.unwrapped.agent_dt == 0.2  # overrides of env.kwargs reach the env
+    quadcopter = make_eval_env(_compose(["env=quadcopter", "env.kwargs.agent_dt=0.3"]))
+    assert quadcopter.unwrapped.agent_dt == 0.3  # overrides of env.kwargs reach the env
 
 
 def test_agent_env_specialisation_and_overrides():
