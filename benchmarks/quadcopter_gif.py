@@ -1,16 +1,19 @@
 """Write a GIF of a policy flying Quadcopter-v0, drawn by the env's rgb_array renderer.
 
-Usage: ``python benchmarks/quadcopter_gif.py [--model PATH] [--output PATH] [--seed 0]``.
-Without ``--model`` the scripted ``QuadcopterPController`` flies.
+Usage: ``python benchmarks/quadcopter_gif.py [--model PATH] [--output PATH] [--seed 0] [--overrides KEY=VALUE ...]``.
+Without ``--model`` the scripted ``QuadcopterPController`` flies. The env is ``conf/env/quadcopter.yaml``'s
+(the one ``python train.py env=quadcopter`` trains on), with the Hydra ``--overrides`` applied
+(e.g. ``env.kwargs.process_noise=0.2``).
 """
 
 import argparse
-import shlex
-import sys
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
+from common import command_line, compose_config
+from omegaconf import OmegaConf
 from PIL import Image
 
 from cme_agent.envs.quadcopter import QuadcopterEnv
@@ -56,17 +59,18 @@ def main() -> None:
     parser.add_argument("--model", default=None, help="saved CMEPolicyIteration model")
     parser.add_argument("--output", default="results/quadcopter_scripted.gif", type=Path)
     parser.add_argument("--seed", type=int, default=0, help="reset seed")
-    parser.add_argument("--process-noise", type=float, default=0.0, help="process noise std")
+    parser.add_argument("--overrides", nargs="*", default=[], help="Hydra overrides of the env config")
     parser.add_argument("--frame-skip", type=int, default=2, help="keep one frame in this many")
     args = parser.parse_args()
 
-    env = QuadcopterEnv(render_mode="rgb_array", process_noise=args.process_noise)
+    kwargs = OmegaConf.to_container(compose_config(["env=quadcopter", *args.overrides]).env.kwargs, resolve=True)
+    env = gym.make("Quadcopter-v0", **{**kwargs, "render_mode": "rgb_array"}).unwrapped
     frames, episode_return, distance = record(env, load_policy(args.model, env), args.seed)
     images = [Image.fromarray(frame) for frame in frames[:: args.frame_skip]]
     args.output.parent.mkdir(parents=True, exist_ok=True)
     duration_ms = round(1000 * env.agent_dt * args.frame_skip)
     images[0].save(args.output, save_all=True, append_images=images[1:], duration=duration_ms, loop=0)
-    print(f"command: python {shlex.join(sys.argv)}")
+    print(f"command: `{command_line()}`")
     print(
         f"wrote {args.output} ({len(images)} frames); episode return {episode_return:.2f}, "
         f"final distance to target {distance:.3f} m"
