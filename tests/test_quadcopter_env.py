@@ -355,7 +355,7 @@ def test_scripted_controller_reaches_and_holds_the_target() -> None:
 
 
 def test_controller_predict_batches_and_evaluate_policy() -> None:
-    env = Monitor(QuadcopterEnv(time_limit=10.0))
+    env = Monitor(QuadcopterEnv(time_limit=10.0, agent_dt=0.1))  # 100 steps, at most 100 of reward
     controller = QuadcopterPController.from_env(env, gain=0.8)
     observations = np.zeros((4, 13), dtype=np.float32)
     actions, state = controller.predict(observations)
