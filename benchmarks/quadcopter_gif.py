@@ -10,14 +10,13 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 from common import command_line, compose_config
-from omegaconf import OmegaConf
 from PIL import Image
 
 from cme_agent.envs.quadcopter import QuadcopterEnv
 from cme_agent.envs.quadcopter_controller import QuadcopterPController
+from cme_agent.experiment import make_eval_env
 
 
 def load_policy(model_path: str | None, env: QuadcopterEnv) -> Any:
@@ -63,8 +62,8 @@ def main() -> None:
     parser.add_argument("--frame-skip", type=int, default=2, help="keep one frame in this many")
     args = parser.parse_args()
 
-    kwargs = OmegaConf.to_container(compose_config(["env=quadcopter", *args.overrides]).env.kwargs, resolve=True)
-    env = gym.make("Quadcopter-v0", **{**kwargs, "render_mode": "rgb_array"}).unwrapped
+    cfg = compose_config(["env=quadcopter", "env.kwargs.render_mode=rgb_array", *args.overrides])
+    env = make_eval_env(cfg).unwrapped  # record() resets it with --seed
     frames, episode_return, distance = record(env, load_policy(args.model, env), args.seed)
     images = [Image.fromarray(frame) for frame in frames[:: args.frame_skip]]
     args.output.parent.mkdir(parents=True, exist_ok=True)
