@@ -107,7 +107,7 @@ def main() -> None:
     large.store.add(*(column[small.store.size : args.large] for column in data))
     large.store.add(*(column[: small.store.size] for column in data))
     small.store.add(*(column[small.store.size : args.small] for column in data))
-    print(f"|D| = {len(small.store)} vs {len(large.store)}, q = {small.n_features}, p = {small.policy.phi.n_features}")
+    print(f"|D| = {len(small.store)} vs {len(large.store)}, q = {small.n_features}, p = {small.policy.phi.width}")
 
     timings: dict[str, list[dict[str, float]]] = {"small": [], "large": []}
     for repeat in range(args.repeats):
@@ -128,7 +128,7 @@ def main() -> None:
     text = (
         f"# Seconds per iteration against |D|\n\nCommand: `{command_line()}` (1 torch thread, median of "
         f"{args.repeats} alternated repeats; Pendulum-v1 config, m = {m}, q = {small.n_features} features, "
-        f"p = {small.policy.phi.n_features}).\n\n{table}\n\n"
+        f"p = {small.policy.phi.width}).\n\n{table}\n\n"
         f"Matching pursuit, 2,000-point subsample x 1,000 candidates x p = 316, 50 picks: {mp_seconds:.3f} s.\n"
     )
     print(text)

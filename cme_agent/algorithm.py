@@ -184,7 +184,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         self.reward_spec = spec if spec is not None else RewardSpec(_zero_reward)
         self.policy.reward_spec = self.reward_spec
         self.model = CMEModel(
-            self.policy.phi.n_features, self.n_features, self.model_update_config.feature_dynamics, learn_reward=spec is None
+            self.policy.phi.width, self.n_features, self.model_update_config.feature_dynamics, learn_reward=spec is None
         ).to(self.device)
         action_shape = () if isinstance(self.action_space, spaces.Discrete) else self.action_space.shape
         obs_dim = self.observation_space.shape[0]

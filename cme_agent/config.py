@@ -211,14 +211,14 @@ class StateFeatureConfig:
     :param resolution: grid points per grid dimension (one int for all, or one per
         dimension; an angle given as (cos, sin) is one periodic dimension)
     :param width: RBF width in grid spacings
-    :param n_features: number of random Fourier features
+    :param n_fourier: number of random Fourier features
     :param bandwidth: length scale of the random Fourier features, in normalised units
     """
 
     kind: str = "rbf_grid"
     resolution: tuple[int, ...] = (11,)
     width: float = 1.0
-    n_features: int = 500
+    n_fourier: int = 500
     bandwidth: float = 0.3
 
     def __post_init__(self) -> None:
@@ -227,7 +227,7 @@ class StateFeatureConfig:
         for points in self.resolution:
             check("phi.resolution", points, isinstance(points, int) and points >= 2, "integers >= 2")
         check_positive("phi.width", self.width)
-        check_positive_int("phi.n_features", self.n_features)
+        check_positive_int("phi.n_fourier", self.n_fourier)
         check_positive("phi.bandwidth", self.bandwidth)
 
 

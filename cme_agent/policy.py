@@ -63,7 +63,7 @@ class CMEPolicy(BasePolicy):
         self.action_encoder = ActionEncoder(action_space)
         self.phi = make_state_features(phi_config, self.obs_encoder)
         self.psi = KernelBank(self.obs_encoder.dim, self.action_encoder.dim, n_features)
-        self.register_buffer("theta_phi", torch.zeros(self.phi.n_features))
+        self.register_buffer("theta_phi", torch.zeros(self.phi.width))
         self.register_buffer("theta_psi", torch.zeros(n_features))
         self.register_buffer("candidates", self._make_candidates())
         self.reward_spec = RewardSpec(_zero_reward)

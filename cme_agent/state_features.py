@@ -55,7 +55,7 @@ class RBFGrid(nn.Module):
             self.register_buffer(f"inv_two_var_{dim}", torch.tensor(1 / (2 * (width * spacing) ** 2)))
 
     @property
-    def n_features(self) -> int:
+    def width(self) -> int:
         """p: grid points plus the constant."""
         return math.prod(self.resolution) + 1
 
@@ -79,20 +79,20 @@ class RandomFourierFeatures(nn.Module):
     b ~ U[0, 2 pi). Output: (N, D + 1). (cos, sin) angle pairs make it periodic by construction.
 
     :param encoder: normalises observations
-    :param n_features: D
+    :param n_fourier: D, the number of random features
     :param bandwidth: kernel length scale in normalised units
     :param seed: seed of the fixed random projection
     """
 
-    def __init__(self, encoder: ObservationEncoder, n_features: int, bandwidth: float, seed: int = 0) -> None:
+    def __init__(self, encoder: ObservationEncoder, n_fourier: int, bandwidth: float, seed: int = 0) -> None:
         super().__init__()
         self.encoder = encoder
         generator = torch.Generator().manual_seed(seed)
-        self.register_buffer("projection", torch.randn(encoder.dim, n_features, generator=generator) / bandwidth)
-        self.register_buffer("phase", torch.rand(n_features, generator=generator) * 2 * math.pi)
+        self.register_buffer("projection", torch.randn(encoder.dim, n_fourier, generator=generator) / bandwidth)
+        self.register_buffer("phase", torch.rand(n_fourier, generator=generator) * 2 * math.pi)
 
     @property
-    def n_features(self) -> int:
+    def width(self) -> int:
         """p: the random features plus the constant."""
         return int(self.phase.numel()) + 1
 
@@ -117,12 +117,12 @@ class CustomStateFeatures(nn.Module):
         probe = feature_map(torch.zeros(2, obs_dim))
         if probe.ndim != 2 or probe.shape[0] != 2:
             raise ValueError(f"a custom phi must map (N, {obs_dim}) to (N, p); it returned shape {tuple(probe.shape)}")
-        self._n_features = int(probe.shape[1]) + 1
+        self._width = int(probe.shape[1]) + 1
 
     @property
-    def n_features(self) -> int:
+    def width(self) -> int:
         """p: the user's features plus the constant."""
-        return self._n_features
+        return self._width
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         """:param obs: (N, obs_dim) observations. :return: (N, p) features."""
@@ -137,10 +137,10 @@ def make_state_features(
 
     :param phi: a :class:`StateFeatureConfig`, or a user map obs (N, obs_dim) -> (N, p0)
     :param encoder: the observation encoder
-    :return: a module with an ``n_features`` attribute, obs (N, obs_dim) -> (N, p)
+    :return: a module with a ``width`` attribute (p), obs (N, obs_dim) -> (N, p)
     """
     if not isinstance(phi, StateFeatureConfig):
         return CustomStateFeatures(phi, encoder.dim)
     if phi.kind == "rbf_grid":
         return RBFGrid(encoder, phi.resolution, phi.width)
-    return RandomFourierFeatures(encoder, phi.n_features, phi.bandwidth)
+    return RandomFourierFeatures(encoder, phi.n_fourier, phi.bandwidth)

@@ -33,7 +33,7 @@ def test_env_config_composes_into_an_agent(env_name, agent_name):
     agent = instantiate(cfg.agent, env=env, seed=0, _convert_="all")
     assert type(agent).__name__ == cfg.agent._target_.rsplit(".", 1)[1]
     assert agent.gamma == cfg.agent.gamma
-    assert agent.policy.phi.n_features > 1
+    assert agent.policy.phi.width > 1
     env.close()
 
 

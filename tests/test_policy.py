@@ -60,7 +60,7 @@ def test_factorised_candidate_q_equals_paired_q():
     generator = torch.Generator().manual_seed(0)
     policy.grow(torch.rand(30, 4, generator=generator) * 2 - 1, torch.rand(30, generator=generator) + 0.1)
     policy.theta_psi = torch.randn(30, generator=generator)
-    policy.theta_phi = torch.randn(policy.phi.n_features, generator=generator)
+    policy.theta_phi = torch.randn(policy.phi.width, generator=generator)
     obs = torch.rand(6, 2, generator=generator) * 2 - 1
     table = policy.candidate_q_values(obs)
     for k, action in enumerate(policy.candidates):
@@ -117,7 +117,7 @@ def test_infinite_observation_bounds_ask_for_normalisation():
 def test_known_envs_get_their_observation_facts():
     pendulum = CMEPolicyIteration("CMEPolicy", "Pendulum-v1")
     assert pendulum.policy.obs_encoder.angle_pairs == [(0, 1)]
-    assert pendulum.policy.phi.n_features == 11 * 11 + 1  # angle x velocity grid
+    assert pendulum.policy.phi.width == 11 * 11 + 1  # angle x velocity grid
     cartpole = CMEPolicyIteration("CMEPolicy", "CartPole-v1")
     assert float(cartpole.policy.obs_encoder.half_range[1]) == 3.0
     explicit = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", policy_kwargs={"observation": {"angle_pairs": []}})
@@ -146,5 +146,5 @@ def test_bad_hyperparameters_name_the_key(kwargs, key):
 def test_custom_phi_module_is_used():
     phi = torch.nn.Linear(3, 8)
     model = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", policy_kwargs={"phi": phi})
-    assert model.policy.phi.n_features == 9
+    assert model.policy.phi.width == 9
     assert model.model.phi_weights.shape == (9, 0)
