@@ -70,7 +70,7 @@ class IterationRecorder(BaseCallback):
                     "transitions": len(model.store) + len(model.holdout),
                     "store_bytes": model.store.nbytes + model.holdout.nbytes,
                     "rss_bytes": resident_bytes(),
-                    "q": model.n_features,
+                    "q": model.q,
                     "seconds": now - self._last,
                     "cpu_seconds": now_cpu - self._last_cpu,
                     "resumed": int(self._start > 0 and model.iteration == self._start + 1),

@@ -69,7 +69,7 @@ def train_with_evaluations(
         train_seconds += time.perf_counter() - start
         row = {"env": env_name, "seed": seed, "steps": model.num_timesteps, "iteration": getattr(model, "iteration", None)}
         row.update(evaluate(model, eval_env))
-        row.update(n_features=getattr(model, "n_features", 0), train_seconds=round(train_seconds, 1))
+        row.update(n_features=getattr(model, "q", 0), train_seconds=round(train_seconds, 1))
         rows.append(row)
         print(
             f"{env_name} seed {seed} steps {model.num_timesteps}: {row['return_mean']:.1f} (q={row['n_features']})", flush=True

@@ -4,6 +4,9 @@ Each iteration of :meth:`CMEPolicyIteration.learn` is one pass of Algorithm 1:
 
 1. :meth:`~CMEPolicyIteration.data_acquisition` -- m env steps of the greedy policy mixed
    with a noisy version of it, aggregated into the store D;
+
+then :meth:`~CMEPolicyIteration.train_iteration` on the new data:
+
 2. :meth:`~CMEPolicyIteration.feature_selection` -- matching pursuit, eq. (5);
 3. :meth:`~CMEPolicyIteration.model_update` -- SGD on the regularised loss, eq. (6);
 4. ``evaluation.rounds`` times on a fresh collection C of states:
@@ -11,7 +14,9 @@ Each iteration of :meth:`CMEPolicyIteration.learn` is one pass of Algorithm 1:
    :meth:`~CMEPolicyIteration.policy_improvement` (Q smoothing).
 
 Every step touches a fixed-size sample of D or only the m new transitions, so the cost of an
-iteration grows with q (the number of features), never with |D|.
+iteration grows with q (the number of features), never with |D|. The model (encoders, phi,
+psi, B and the expected reward) is one module, :class:`~cme_agent.dynamics.CMEDynamics`, the
+policy's submodule ``dynamics``; the policy holds the Q weights and the action search.
 """
 
 from __future__ import annotations
@@ -44,13 +49,12 @@ from cme_agent.config import (
     check_positive_int,
     check_unit_interval,
 )
-from cme_agent.dynamics import CMEModel, matching_pursuit, sgd_step
+from cme_agent.dynamics import CMEDynamics, matching_pursuit
 from cme_agent.encoding import KNOWN_OBSERVATIONS
 from cme_agent.exploration import BehaviourPolicy
-from cme_agent.kernel_bank import gaussian_kernel
 from cme_agent.persistence import PersistenceMixin, plain
-from cme_agent.planning import bellman_residual_descent, bellman_residual_rms, bellman_residual_weights, lstd_weights, smooth
-from cme_agent.policy import CMEPolicy, _zero_reward
+from cme_agent.planning import bellman_residual_descent, bellman_residual_rms, bellman_residual_weights, lstd_weights
+from cme_agent.policy import CMEPolicy
 from cme_agent.rewards import RewardSpec, StepReward, resolve_reward
 
 SelfCME = TypeVar("SelfCME", bound="CMEPolicyIteration")
@@ -148,7 +152,6 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         self._behaviour: BehaviourPolicy | None = None
         self._value_weights: torch.Tensor | None = None
         self.iteration = 0
-        self.n_features = 0
         self.model_step_scale = 1.0
         self.env_id, self.env_kwargs = self._env_identity(self.env)
         if self.env is not None:
@@ -164,8 +167,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
 
     # ------------------------------------------------------------------ set-up
     def _setup_model(self) -> None:
-        """Build the policy (phi, psi, Q weights), the model B, the stores and the RNGs."""
-        self._setup_lr_schedule()
+        """Build the policy (with the model as its submodule ``dynamics``), the stores and the RNGs."""
         if self.seed is None:
             self.seed = int(np.random.SeedSequence().generate_state(1)[0])
         seed = self.seed
@@ -177,20 +179,29 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         if "observation" not in kwargs and self.env_id in KNOWN_OBSERVATIONS:
             kwargs["observation"] = KNOWN_OBSERVATIONS[self.env_id]
         self.policy_kwargs = kwargs
-        self.policy = self.policy_class(self.observation_space, self.action_space, n_features=self.n_features, **kwargs).to(
-            self.device
-        )
-        spec, self.reward_source = self._resolve_reward()
-        self.reward_spec = spec if spec is not None else RewardSpec(_zero_reward)
-        self.policy.reward_spec = self.reward_spec
-        self.model = CMEModel(
-            self.policy.phi.width, self.n_features, self.model_update_config.feature_dynamics, learn_reward=spec is None
+        reward, self.reward_source = self._resolve_reward()
+        self.policy = self.policy_class(
+            self.observation_space,
+            self.action_space,
+            feature_dynamics=self.model_update_config.feature_dynamics,
+            reward=reward,
+            **kwargs,
         ).to(self.device)
         action_shape = () if isinstance(self.action_space, spaces.Discrete) else self.action_space.shape
         obs_dim = self.observation_space.shape[0]
         self.store = TransitionStore(obs_dim, action_shape, self.device)
         self.holdout = TransitionStore(obs_dim, action_shape, self.device)
         self._phase_seconds: dict[str, float] = {}
+
+    @property
+    def dynamics(self) -> CMEDynamics:
+        """The CME model of the dynamics and the reward (the policy's submodule)."""
+        return self.policy.dynamics
+
+    @property
+    def q(self) -> int:
+        """q, the number of selected kernel features of psi."""
+        return self.policy.dynamics.q
 
     def _resolve_reward(self) -> tuple[RewardSpec | None, str]:
         """The reward to plan with and its source; a loaded model keeps the source it was trained with."""
@@ -205,7 +216,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         return resolve_reward(self.reward_fn, self.env_id, env)
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
-        return ["policy", "model"], []
+        return ["policy"], []
 
     # ------------------------------------------------------------------ Algorithm 1
     def learn(
@@ -240,18 +251,27 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             new_data = self.data_acquisition(callback, math.ceil(steps / self.n_envs))
             if new_data is None:
                 break
-            self.iteration += 1
-            with torch.no_grad():
-                self.feature_selection(new_data)
-                self.model_update()
-                for _ in range(self.evaluation_config.rounds):
-                    collection = self.draw_collection()
-                    value_weights = self.policy_evaluation(collection)
-                    self.policy_improvement(value_weights)
+            self.train_iteration(new_data)
             if log_interval > 0 and self.iteration % log_interval == 0:
                 self.dump_logs()
         callback.on_training_end()
         return self
+
+    @torch.no_grad()
+    def train_iteration(self, new_data: Transitions) -> None:
+        """Everything of one iteration after data acquisition (Algorithm 1, lines 2-5): feature
+        selection, the model update, then ``evaluation.rounds`` times evaluation and improvement
+        on a fresh collection C.
+
+        :param new_data: the transitions this iteration collected (already in the store D)
+        """
+        self.iteration += 1
+        self.feature_selection(new_data)
+        self.model_update()
+        for _ in range(self.evaluation_config.rounds):
+            collection = self.draw_collection()
+            value_weights = self.policy_evaluation(collection)
+            self.policy_improvement(value_weights)
 
     def _make_behaviour(self) -> BehaviourPolicy:
         return BehaviourPolicy(self.action_space, self.exploration_config, self._np_rng, self.n_envs)
@@ -345,14 +365,6 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             if mask.any():
                 store.add(obs[mask], actions[mask], rewards[mask], next_obs[mask], terminated[mask])
 
-    def _regression_data(self, batch: Transitions) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Normalised state-actions z (N, d), features psi (N, q) and targets y (N, p_out) of a batch."""
-        policy = self.policy
-        z = torch.cat([policy.obs_encoder.normalize(batch.obs), policy.action_encoder.encode(batch.actions)], dim=1)
-        psi = policy.psi(z[:, : policy.psi.state_dim], z[:, policy.psi.state_dim :])
-        targets = self.model.targets(policy.phi(batch.obs), policy.phi(batch.next_obs), batch.terminated, batch.rewards)
-        return z, psi, targets
-
     def feature_selection(self, new_data: Transitions) -> int:
         """Feature selection, eq. (5): matching pursuit on the model residual over a random
         subsample of D (plus the new points), with a dictionary of Gaussian kernels centred at
@@ -362,35 +374,37 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         :param new_data: the transitions collected in this iteration (the dictionary's centres)
         :return: the number of features added
         """
-        config = self.feature_selection_config
+        config, dynamics = self.feature_selection_config, self.dynamics
         with self._timed("feature_selection"):
             budget = config.max_features
             if config.max_total_features is not None:
-                budget = min(budget, config.max_total_features - self.n_features)
+                budget = min(budget, config.max_total_features - dynamics.q)
             if len(new_data) == 0 or budget <= 0:
                 return self._record_features_added(0)
-            subsample = self.store.sample(config.subsample_size, self._torch_rng)
-            batch = new_data.concat(subsample)
-            if self.model.learn_reward and self.n_features == 0:
-                self.model.reward_scale.fill_(float(batch.rewards.std().clamp_min(1e-3)))
-            z, psi, targets = self._regression_data(batch)
-            residual = targets - self.model.predict(psi)
+            batch = new_data.concat(self.store.sample(config.subsample_size, self._torch_rng))
+            dynamics.calibrate_reward_scale(batch.rewards)
+            z = dynamics.encode(batch.obs, batch.actions)
+            residual = dynamics.targets(batch) - dynamics.predict(dynamics.psi(z))
             centres = z[: len(new_data)]
             bandwidths = torch.tensor(config.bandwidths, dtype=z.dtype, device=z.device)
-            atoms = torch.cat([gaussian_kernel(z, centres, (1 / (2 * h**2)).expand(len(centres))) for h in bandwidths], dim=1)
-            result = matching_pursuit(atoms, residual, config.threshold, budget, config.orthogonal)
+            result = matching_pursuit(
+                dynamics.dictionary(z, centres, bandwidths), residual, config.threshold, budget, config.orthogonal
+            )
             picked = result.indices
-            self.policy.grow(centres[picked % len(centres)], bandwidths[picked // len(centres)])
-            self.model.append(config.theta * result.weights.T)
-            self.n_features = self.policy.n_features
+            dynamics.grow(centres[picked % len(centres)], bandwidths[picked // len(centres)], config.theta * result.weights.T)
             if result.energy_before > 0:
                 self.logger.record("train/mp_residual_reduction", 1 - result.energy_after / result.energy_before)
             return self._record_features_added(len(picked))
 
     def _record_features_added(self, added: int) -> int:
         self.logger.record("train/features_added", added)
-        self.logger.record("train/n_features", self.n_features)
+        self.logger.record("train/n_features", self.q)
         return added
+
+    def _sample_minibatches(self, n_batches: int, batch_size: int) -> Transitions:
+        """``n_batches`` minibatches of D, concatenated (drawn one after another, as SGD uses them)."""
+        indices = [torch.randint(len(self.store), (batch_size,), generator=self._torch_rng) for _ in range(n_batches)]
+        return self.store.get(torch.cat(indices).to(self.device))
 
     def model_update(self) -> None:
         """Update the CME model, eq. (6): ``n_steps`` SGD steps on minibatches drawn from D.
@@ -398,20 +412,19 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         A diverging update (non-finite B, or the loss on a check batch up tenfold) is undone,
         the step size halved for the rest of the run, and a warning issued.
         """
-        config = self.model_update_config
+        config, dynamics = self.model_update_config, self.dynamics
         with self._timed("model_update"):
-            if self.n_features == 0:
+            if dynamics.q == 0:
                 return
-            _, check_psi, check_targets = self._regression_data(self.store.sample(config.batch_size * 4, self._torch_rng))
-            loss_before = float(self.model.loss(check_psi, check_targets))
-            backup = self.model.weights.clone()
+            check_psi, check_targets = dynamics.regression_data(self.store.sample(config.batch_size * 4, self._torch_rng))
+            loss_before = float(dynamics.loss(check_psi, check_targets))
+            backup = dynamics.weights.clone()
             learning_rate = config.learning_rate * self.model_step_scale
-            for _ in range(config.n_steps):
-                _, psi, targets = self._regression_data(self.store.sample(config.batch_size, self._torch_rng))
-                sgd_step(self.model.weights, psi, targets, learning_rate, config.l2)
-            loss_after = float(self.model.loss(check_psi, check_targets))
+            batches = self._sample_minibatches(config.n_steps, config.batch_size)
+            dynamics.sgd_update(batches, config.batch_size, learning_rate, config.l2)
+            loss_after = float(dynamics.loss(check_psi, check_targets))
             if not (math.isfinite(loss_after) and loss_after <= 10 * loss_before + 1e-8):
-                self.model.weights.copy_(backup)
+                dynamics.weights.copy_(backup)
                 self.model_step_scale /= 2
                 warnings.warn(
                     f"model update diverged at iteration {self.iteration} (check loss {loss_before:.3g} -> {loss_after:.3g}); "
@@ -426,9 +439,10 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
     def _record_holdout_loss(self) -> None:
         """Log ``train/model_loss``: the model's mean squared error on held-out transitions."""
         if len(self.holdout) > 0:
-            sample = self.holdout.sample(self.model_update_config.holdout_size, self._torch_rng)
-            _, psi, targets = self._regression_data(sample)
-            self.logger.record("train/model_loss", float(self.model.loss(psi, targets)))
+            psi, targets = self.dynamics.regression_data(
+                self.holdout.sample(self.model_update_config.holdout_size, self._torch_rng)
+            )
+            self.logger.record("train/model_loss", float(self.dynamics.loss(psi, targets)))
 
     def draw_collection(self) -> torch.Tensor:
         """The collection C of eq. (7): ``collection_size`` states, a ``uniform_fraction`` of them
@@ -439,22 +453,13 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         config = self.evaluation_config
         with self._timed("policy_evaluation"):
             n_uniform = round(config.uniform_fraction * config.collection_size)
-            uniform = self.policy.obs_encoder.sample_uniform(2 * n_uniform, self._torch_rng)
-            if self.reward_spec.is_terminal is not None:
-                uniform = uniform[~self.reward_spec.is_terminal(uniform)]
+            uniform = self.dynamics.obs_encoder.sample_uniform(2 * n_uniform, self._torch_rng)
+            is_terminal = self.dynamics.reward.is_terminal
+            if is_terminal is not None:
+                uniform = uniform[~is_terminal(uniform)]
             uniform = uniform[:n_uniform]
             from_data = self.store.sample(config.collection_size - len(uniform), self._torch_rng).obs
             return torch.cat([uniform, from_data])
-
-    def expected_reward(self, obs: torch.Tensor, actions: torch.Tensor, psi: torch.Tensor) -> torch.Tensor:
-        """r(s, a) = step reward + terminal bonus * P_model(terminate | s, a) + learned reward: (N,)."""
-        reward = self.reward_spec.step_reward(obs, actions)
-        if self.reward_spec.terminal_bonus:
-            constant, weights = self.model.termination_weights()
-            reward = reward + self.reward_spec.terminal_bonus * (constant + psi @ weights)
-        if self.model.learn_reward:
-            reward = reward + psi @ self.model.reward_weights()
-        return reward
 
     def policy_evaluation(self, states: torch.Tensor) -> torch.Tensor:
         """Policy evaluation, eq. (7): value weights w of the current greedy policy on C, by
@@ -463,13 +468,12 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         :param states: (|C|, obs_dim) the collection C
         :return: (p,) value weights w, V(s) = <w, phi(s)>
         """
-        config = self.evaluation_config
+        config, dynamics = self.evaluation_config, self.dynamics
         with self._timed("policy_evaluation"):
-            actions, q_values = self.policy.greedy(states)
-            phi = self.policy.phi(states)
-            psi = self.policy.state_action_features(states, actions)
-            next_phi = self.model.expected_next_phi(phi, psi)
-            rewards = self.expected_reward(states, actions, psi)
+            greedy = self.policy.greedy_step(states)
+            phi = greedy.phi
+            next_phi = dynamics.expected_next_phi(phi, greedy.psi)
+            rewards = dynamics.expected_reward(states, greedy.actions, phi, greedy.psi)
             if config.solver == "gd":
                 initial = self._value_weights if self._value_weights is not None else torch.zeros_like(phi[0])
                 weights = bellman_residual_descent(phi, next_phi, rewards, self.gamma, config.l2, initial, config.gd_steps)
@@ -479,29 +483,18 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
                 weights = bellman_residual_weights(phi, next_phi, rewards, self.gamma, config.l2)
             self._value_weights = weights
             self.logger.record("train/bellman_residual", bellman_residual_rms(phi, next_phi, rewards, self.gamma, weights))
-            self.logger.record("train/q_mean", float(q_values.mean()))
+            self.logger.record("train/q_mean", float(greedy.values.mean()))
             self.logger.record("train/value_mean", float((phi @ weights).mean()))
             return weights
 
     def policy_improvement(self, value_weights: torch.Tensor) -> None:
-        """Policy improvement: Q_k = (1 - omega) Q_{k-1} + omega Q^_k, with
-        ``Q^_k(s, a) = r(s, a) + gamma <w_k, E_model[phi~(S') | s, a]>``, on the linear weights
-        of Q (zero-padded, no history); pi_{k+1} = greedy(Q_k) is then :meth:`CMEPolicy.greedy`.
+        """Policy improvement: Q_k = (1 - omega) Q_{k-1} + omega Q^_k on the linear weights of Q
+        (zero-padded, no history); pi_{k+1} = greedy(Q_k) (:meth:`CMEPolicy.improve`).
 
         :param value_weights: (p,) w_k from :meth:`policy_evaluation`
         """
         with self._timed("policy_improvement"):
-            model = self.model
-            theta_psi = self.gamma * model.phi_weights.T @ value_weights
-            theta_phi = self.gamma * value_weights if model.feature_dynamics else torch.zeros_like(value_weights)
-            if self.reward_spec.terminal_bonus:
-                constant, weights = model.termination_weights()
-                theta_psi = theta_psi + self.reward_spec.terminal_bonus * weights
-                theta_phi[-1] += self.reward_spec.terminal_bonus * constant
-            if model.learn_reward:
-                theta_psi = theta_psi + model.reward_weights()
-            self.policy.theta_phi = smooth(self.policy.theta_phi, theta_phi, self.omega)
-            self.policy.theta_psi = smooth(self.policy.theta_psi, theta_psi, self.omega)
+            self.policy.improve(value_weights, self.gamma, self.omega)
 
     # ------------------------------------------------------------------ logging
     def _announce_reward(self) -> None:

@@ -106,7 +106,7 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         "eval_mean_reward": mean,
         "eval_std_reward": std,
         "train_seconds": train_seconds,
-        "n_features": getattr(model, "n_features", None),
+        "q": getattr(model, "q", None),
         "run_dir": str(run_dir),
     }
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))

@@ -2,69 +2,74 @@
 
 Feature j is ``psi_j(z) = exp(-||z - c_j||^2 / (2 h_j^2))`` on the normalised state-action
 ``z = (z_s, z_a)``. The bank only ever grows by appending, which is what lets the smoothed
-Q weights be zero-padded instead of keeping a history (DESIGN.md, fact 2).
+Q weights be zero-padded instead of keeping a history (docs/design.md, "Q needs no history").
 """
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from torch import nn
+
+MIN_EXPONENT = -80.0
+"""Kernel exponents are clamped here: exp(-80) ~ 2e-35 is still a normal float32, and an
+exponent below about -87 would make ``exp`` produce denormals, 10-30x slower per element."""
 
 
 def gaussian_kernel(x: torch.Tensor, centres: torch.Tensor, inv_two_sq_bandwidth: torch.Tensor) -> torch.Tensor:
     """Gaussian kernel values between points and centres, one bandwidth per centre.
 
+    The exponent ``-a_j ||x - c_j||^2`` with ``a_j = 1 / (2 h_j^2)`` expands to
+    ``-a_j ||c_j||^2 + [x, ||x||^2] . [2 a_j c_j, -a_j]``, so the whole (N, q) exponent is one
+    GEMM onto a broadcast bias; clamping and ``exp`` then run in place on that one buffer
+    (no (N, q) temporaries).
+
     :param x: (N, d) points
     :param centres: (q, d) centres
-    :param inv_two_sq_bandwidth: (q,) values 1 / (2 h^2)
-    :return: (N, q) kernel values in (0, 1]
+    :param inv_two_sq_bandwidth: (q,) values a_j = 1 / (2 h_j^2)
+    :return: (N, q) kernel values in (0, 1] (values below exp(MIN_EXPONENT) are that floor)
     """
-    sq_dist = (x * x).sum(1, keepdim=True) - 2 * x @ centres.T + (centres * centres).sum(1)
-    return torch.exp(-sq_dist.clamp_min(0) * inv_two_sq_bandwidth)
+    a = inv_two_sq_bandwidth
+    points = torch.cat([x, (x * x).sum(1, keepdim=True)], dim=1)
+    weights = torch.cat([2 * a[:, None] * centres, -a[:, None]], dim=1)
+    exponent = torch.addmm(-a * (centres * centres).sum(1), points, weights.T)
+    return exponent.clamp_(MIN_EXPONENT, 0.0).exp_()
 
 
 class KernelBank(nn.Module):
     """psi as an ``nn.Module`` whose size q grows by :meth:`append`.
 
+    Loading a state dict resizes the bank to the saved q, so a bank always loads whole.
+
     :param state_dim: width of the normalised state part z_s
     :param action_dim: width of the normalised action part z_a
-    :param n_features: initial q (0 for a new agent; the saved size when loading)
     """
 
-    def __init__(self, state_dim: int, action_dim: int, n_features: int = 0) -> None:
+    def __init__(self, state_dim: int, action_dim: int) -> None:
         super().__init__()
         self.state_dim = state_dim
-        self.register_buffer("centres", torch.zeros(n_features, state_dim + action_dim))
-        self.register_buffer("inv_two_sq_bandwidth", torch.ones(n_features))
+        self.register_buffer("centres", torch.zeros(0, state_dim + action_dim))
+        self.register_buffer("inv_two_sq_bandwidth", torch.ones(0))
+        self.version = 0
 
     @property
-    def n_features(self) -> int:
+    def q(self) -> int:
         """q, the number of features."""
         return int(self.inv_two_sq_bandwidth.numel())
 
-    def forward(self, z_state: torch.Tensor, z_action: torch.Tensor) -> torch.Tensor:
-        """psi at paired state-actions.
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        """psi at normalised state-actions: :param z: (N, state_dim + action_dim) (z_s, z_a). :return: (N, q)."""
+        return gaussian_kernel(z, self.centres, self.inv_two_sq_bandwidth)
 
-        :param z_state: (N, state_dim) normalised states
-        :param z_action: (N, action_dim) normalised actions
-        :return: (N, q)
-        """
-        return gaussian_kernel(torch.cat([z_state, z_action], dim=1), self.centres, self.inv_two_sq_bandwidth)
+    def state_factor(self, z_state: torch.Tensor) -> torch.Tensor:
+        """S (N, q): the state factor of psi, psi_j(s, a) = S[n, j] * A[k, j] (a Gaussian on a
+        concatenation factorises). :param z_state: (N, state_dim) normalised states."""
+        return gaussian_kernel(z_state, self.centres[:, : self.state_dim], self.inv_two_sq_bandwidth)
 
-    def factors(self, z_state: torch.Tensor, z_action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """The state and action factors of psi for all N x K pairs at once.
-
-        A Gaussian on a concatenation factorises, psi_j(s, a) = S[n, j] * A[k, j], so Q over all
-        candidate actions is one product ``(S * theta) @ A.T`` instead of N * K kernel rows.
-
-        :param z_state: (N, state_dim) normalised states
-        :param z_action: (K, action_dim) normalised candidate actions
-        :return: S (N, q) and A (K, q)
-        """
-        split = self.state_dim
-        state_part = gaussian_kernel(z_state, self.centres[:, :split], self.inv_two_sq_bandwidth)
-        action_part = gaussian_kernel(z_action, self.centres[:, split:], self.inv_two_sq_bandwidth)
-        return state_part, action_part
+    def action_factor(self, z_action: torch.Tensor) -> torch.Tensor:
+        """A (K, q): the action factor of psi. :param z_action: (K, action_dim) normalised actions."""
+        return gaussian_kernel(z_action, self.centres[:, self.state_dim :], self.inv_two_sq_bandwidth)
 
     def append(self, centres: torch.Tensor, bandwidths: torch.Tensor) -> None:
         """Append features.
@@ -74,3 +79,30 @@ class KernelBank(nn.Module):
         """
         self.centres = torch.cat([self.centres, centres.to(self.centres)])
         self.inv_two_sq_bandwidth = torch.cat([self.inv_two_sq_bandwidth, (1 / (2 * bandwidths**2)).to(self.centres)])
+        self.version += 1
+
+    def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
+        resize_buffers(self, state_dict, prefix, {"centres": 0, "inv_two_sq_bandwidth": 0})
+        self.version += 1
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+
+def resize_buffers(module: nn.Module, state_dict: dict[str, Any], prefix: str, growing: dict[str, int]) -> None:
+    """Give the growing buffers of ``module`` the length they have in ``state_dict`` along
+    their growing axis, so ``load_state_dict`` then copies them whole. A buffer whose other
+    axes differ, or a missing key, is left for the strict load to report.
+
+    :param module: the module being loaded
+    :param state_dict: the state dict being loaded
+    :param prefix: the module's key prefix in ``state_dict``
+    :param growing: buffer name -> the axis along which it grows with q
+    """
+    for name, axis in growing.items():
+        saved = state_dict.get(prefix + name)
+        current = getattr(module, name)
+        if not isinstance(saved, torch.Tensor) or saved.ndim != current.ndim:
+            continue
+        fixed_saved = [n for i, n in enumerate(saved.shape) if i != axis % saved.ndim]
+        fixed_current = [n for i, n in enumerate(current.shape) if i != axis % current.ndim]
+        if fixed_saved == fixed_current:
+            setattr(module, name, current.new_zeros(saved.shape))

@@ -1,8 +1,10 @@
 """KernelPolicyIteration: the 'Kernel' baseline of the paper's experiments (section 3.1).
 
-The same policy-iteration loop as :class:`~cme_agent.CMEPolicyIteration`, but with no feature
-selection: every collected state-action becomes a kernel feature, and the CME is relearned
-every iteration by kernel ridge regression on all data collected so far, in O(|D|^3). psi
+The same policy-iteration loop as :class:`~cme_agent.CMEPolicyIteration`; only the two steps
+that learn the model differ (:meth:`~KernelPolicyIteration.feature_selection` and
+:meth:`~KernelPolicyIteration.model_update`). There is no feature selection: every collected
+state-action becomes a kernel feature, and the CME is relearned every iteration by kernel ridge
+regression on all data collected so far, in O(|D|^3). psi
 still only grows by appending, so the Q smoothing is unchanged. As in the paper, it should
 be run with less data per iteration to stay feasible.
 """
@@ -39,24 +41,26 @@ class KernelPolicyIteration(CMEPolicyIteration):
         return {**super()._constructor_kwargs(), "kernel_bandwidth": self.kernel_bandwidth, "kernel_l2": self.kernel_l2}
 
     def feature_selection(self, new_data: Transitions) -> int:
-        """No selection: a kernel centred at every new state-action joins psi.
+        """No selection: a kernel centred at every new state-action joins psi (with zero weights,
+        set by the next :meth:`model_update`).
 
         :param new_data: the transitions collected in this iteration
         :return: the number of features added (all of them)
         """
+        dynamics = self.dynamics
         with self._timed("feature_selection"):
-            z, _, _ = self._regression_data(new_data)
-            self.policy.grow(z, torch.full((len(z),), self.kernel_bandwidth, dtype=z.dtype, device=z.device))
-            self.model.append(torch.zeros(self.model.weights.shape[0], len(z), dtype=z.dtype, device=z.device))
-            self.n_features = self.policy.n_features
+            z = dynamics.encode(new_data.obs, new_data.actions)
+            bandwidths = torch.full((len(z),), self.kernel_bandwidth, dtype=z.dtype, device=z.device)
+            dynamics.grow(z, bandwidths, dynamics.weights.new_zeros(dynamics.weights.shape[0], len(z)))
             return self._record_features_added(len(z))
 
     def model_update(self) -> None:
         """Relearn B = Y^T (K + n lambda I)^{-1} on ALL training data, O(|D|^3)."""
+        dynamics = self.dynamics
         with self._timed("model_update"):
-            if self.n_features == 0:
+            if dynamics.q == 0:
                 return
-            _, psi, targets = self._regression_data(self.store.get(slice(0, len(self.store))))
-            self.model.weights = kernel_ridge_weights(psi, targets, self.kernel_l2)
-            self.logger.record("train/model_loss_train", float(self.model.loss(psi, targets)))
+            psi, targets = dynamics.regression_data(self.store.get(slice(0, len(self.store))))
+            dynamics.weights = kernel_ridge_weights(psi, targets, self.kernel_l2)
+            self.logger.record("train/model_loss_train", float(dynamics.loss(psi, targets)))
             self._record_holdout_loss()

@@ -1,9 +1,9 @@
 """save() / load() / checkpoints of the agent in the safe format of :mod:`cme_agent.serialization`.
 
 The agent contributes two things: its constructor arguments as plain data
-(``_constructor_kwargs``) and its counters (``_COUNTERS``). Everything else (the policy, the
-model B, the RNG states, the exploration state and, in checkpoints, the transition stores)
-travels as tensors.
+(``_constructor_kwargs``) and its counters (``_COUNTERS``). Everything else (the policy with
+its model, whose grown tensors load at their saved size q, the RNG states, the exploration
+state and, in checkpoints, the transition stores) travels as tensors.
 """
 
 from __future__ import annotations
@@ -71,7 +71,6 @@ class PersistenceMixin:
         "num_timesteps",
         "_episode_num",
         "iteration",
-        "n_features",
         "model_step_scale",
         "reward_source",
         "env_id",
@@ -89,7 +88,6 @@ class PersistenceMixin:
     def _tensor_state(self, include_buffers: bool) -> dict[str, Any]:
         state: dict[str, Any] = {
             "policy": self.policy.state_dict(),
-            "model": self.model.state_dict(),
             "torch_rng": self._torch_rng.get_state(),
         }
         if self._behaviour is not None:
@@ -183,8 +181,7 @@ class PersistenceMixin:
             if "behaviour" in tensors and self.env is not None:
                 self._behaviour = self._make_behaviour()  # draws from the RNG: before its state is restored
                 self._behaviour.load_state_dict(tensors["behaviour"])
-            self.policy.load_state_dict(tensors["policy"], strict=True)
-            self.model.load_state_dict(tensors["model"], strict=True)
+            self.policy.load_state_dict(tensors["policy"], strict=True)  # resizes the grown tensors to the saved q
             self._torch_rng.set_state(tensors["torch_rng"])
             self._value_weights = tensors.get("value_weights")
             self._np_rng.bit_generator.state = numpy_rng

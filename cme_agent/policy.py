@@ -1,31 +1,48 @@
-"""CMEPolicy: the greedy policy of the smoothed Q function (paper section 2.2, DESIGN.md fact 2).
+"""CMEPolicy: the greedy policy of the smoothed Q function (paper section 2.2).
 
 ``Q_k(s, a) = r(s, a) + <theta_phi, phi(s)> + <theta_psi, psi(s, a)>``, where r is the known
 step reward and the weights accumulate gamma <w, B psi>, the expected terminal bonus and a
-learned reward. Acting greedily costs O(q) per candidate action, whatever the iteration.
+learned reward (:meth:`~cme_agent.dynamics.CMEDynamics.backup_weights`). The policy owns the
+Q weights and the search over candidate actions; the model (phi, psi, B, the reward) is its
+submodule ``dynamics``. Acting greedily costs O(q) per candidate action, whatever the iteration.
+
+theta_psi may be shorter than q: features added since the last improvement have weight 0
+in Q (the zero-padding of docs/design.md), so Q reads only the first ``len(theta_psi)`` of them.
 """
 
 from __future__ import annotations
 
 import itertools
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import torch
 from gymnasium import spaces
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import PyTorchObs
-from torch import nn
 
-from cme_agent.config import ActionSearchConfig, ObservationConfig, StateFeatureConfig, build_config
-from cme_agent.encoding import ActionEncoder, ObservationEncoder
-from cme_agent.kernel_bank import KernelBank
+from cme_agent.config import ActionSearchConfig, ObservationConfig, build_config
+from cme_agent.dynamics.cme import CMEDynamics, PhiSpec
+from cme_agent.kernel_bank import resize_buffers
+from cme_agent.planning import smooth
 from cme_agent.rewards import RewardSpec
-from cme_agent.state_features import make_state_features
 
 
-def _zero_reward(obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-    return torch.zeros(obs.shape[0], dtype=obs.dtype, device=obs.device)
+@dataclass
+class GreedyStep:
+    """The greedy policy at a batch of states, with the features planning reuses.
+
+    :param actions: (N, act_dim) Box actions in env units, or (N,) Discrete indices
+    :param values: (N,) Q_k at those actions
+    :param phi: (N, p) phi(s)
+    :param psi: (N, q) psi(s, pi(s))
+    """
+
+    actions: torch.Tensor
+    values: torch.Tensor
+    phi: torch.Tensor
+    psi: torch.Tensor
 
 
 class CMEPolicy(BasePolicy):
@@ -34,12 +51,12 @@ class CMEPolicy(BasePolicy):
     :param observation_space: a 1-D ``Box``
     :param action_space: a 1-D ``Box`` or a ``Discrete``
     :param lr_schedule: unused (SB3 signature); the model's step size lives in the algorithm
-    :param phi: the state feature map: a :class:`StateFeatureConfig` or its dict, or a user
-        map (``nn.Module`` or callable) from obs (N, obs_dim) to (N, p0)
+    :param phi: the state feature map (see :class:`~cme_agent.dynamics.CMEDynamics`)
     :param observation: normalisation bounds and angle pairs (:class:`ObservationConfig` or dict)
     :param action_search: greedy search over Box actions (:class:`ActionSearchConfig` or dict)
-    :param n_features: initial size q of the kernel bank psi (the saved size when loading)
     :param candidate_seed: seed of the sampled action candidates (Box actions, high dims)
+    :param feature_dynamics: the model regresses phi~(s') - phi(s) (section 2.3)
+    :param reward: the known reward; None: the model learns it
     """
 
     def __init__(
@@ -47,32 +64,30 @@ class CMEPolicy(BasePolicy):
         observation_space: spaces.Space,
         action_space: spaces.Space,
         lr_schedule: Callable[[float], float] | None = None,
-        phi: StateFeatureConfig | dict[str, Any] | nn.Module | Callable[[torch.Tensor], torch.Tensor] | None = None,
+        phi: PhiSpec = None,
         observation: ObservationConfig | dict[str, Any] | None = None,
         action_search: ActionSearchConfig | dict[str, Any] | None = None,
-        n_features: int = 0,
         candidate_seed: int = 0,
+        feature_dynamics: bool = True,
+        reward: RewardSpec | None = None,
     ) -> None:
         super().__init__(observation_space, action_space, squash_output=False)
         self.phi_spec = phi
-        self.observation_config = build_config(ObservationConfig, observation, "observation")
         self.action_search = build_config(ActionSearchConfig, action_search, "action_search")
         self.candidate_seed = candidate_seed
-        phi_config = phi if callable(phi) else build_config(StateFeatureConfig, phi, "phi")
-        self.obs_encoder = ObservationEncoder(observation_space, self.observation_config)
-        self.action_encoder = ActionEncoder(action_space)
-        self.phi = make_state_features(phi_config, self.obs_encoder)
-        self.psi = KernelBank(self.obs_encoder.dim, self.action_encoder.dim, n_features)
-        self.register_buffer("theta_phi", torch.zeros(self.phi.width))
-        self.register_buffer("theta_psi", torch.zeros(n_features))
+        self.observation_config = build_config(ObservationConfig, observation, "observation")
+        self.dynamics = CMEDynamics(observation_space, action_space, phi, self.observation_config, feature_dynamics, reward)
+        self.register_buffer("theta_phi", torch.zeros(self.dynamics.p))
+        self.register_buffer("theta_psi", torch.zeros(0))
         self.register_buffer("candidates", self._make_candidates())
-        self.reward_spec = RewardSpec(_zero_reward)
+        self._candidate_factor: tuple[tuple[int, int], torch.Tensor] | None = None
 
     def _make_candidates(self) -> torch.Tensor:
         """Candidate actions in env units: all Discrete actions (K,), or a Box grid / sample (K, act_dim)."""
-        if self.action_encoder.discrete:
-            return torch.arange(self.action_encoder.n_actions)
-        dims = self.action_encoder.dim
+        encoder = self.dynamics.action_encoder
+        if encoder.discrete:
+            return torch.arange(encoder.n_actions)
+        dims = encoder.dim
         search = self.action_search
         if dims <= search.max_grid_dims:
             axis = torch.linspace(-1, 1, search.grid_size)
@@ -81,17 +96,12 @@ class CMEPolicy(BasePolicy):
             generator = torch.Generator().manual_seed(self.candidate_seed)
             sampled = torch.rand(search.n_samples, dims, generator=generator) * 2 - 1
             encoded = torch.cat([torch.zeros(1, dims), sampled])
-        return self.action_encoder.decode(encoded)
+        return encoder.decode(encoded)
 
     @property
     def device(self) -> torch.device:
         """The device of the policy's tensors (it has buffers, no parameters)."""
         return self.theta_phi.device
-
-    @property
-    def n_features(self) -> int:
-        """q, the current size of the kernel bank psi."""
-        return self.psi.n_features
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
@@ -99,63 +109,83 @@ class CMEPolicy(BasePolicy):
             phi=self.phi_spec,
             observation=self.observation_config,
             action_search=self.action_search,
-            n_features=self.n_features,
             candidate_seed=self.candidate_seed,
+            feature_dynamics=self.dynamics.feature_dynamics,
         )
         return data
 
-    def state_action_features(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        """psi(s, a) at paired states and actions: (N, obs_dim), (N, ...) -> (N, q)."""
-        return self.psi(self.obs_encoder.normalize(obs), self.action_encoder.encode(actions))
+    def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
+        resize_buffers(self, state_dict, prefix, {"theta_psi": 0})
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
-    def step_reward(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        """The known per-step reward r(s, a): (N, obs_dim), (N, ...) -> (N,)."""
-        return self.reward_spec.step_reward(obs, actions)
-
+    # ------------------------------------------------------------------ Q
     def q_values(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        """Q_k at paired states and actions: (N, obs_dim), (N, ...) -> (N,)."""
-        return (
-            self.step_reward(obs, actions)
-            + self.phi(obs) @ self.theta_phi
-            + self.state_action_features(obs, actions) @ self.theta_psi
-        )
+        """Q_k at paired states and actions (differentiable in the actions): (N, obs_dim), (N, ...) -> (N,)."""
+        dynamics, k = self.dynamics, self.theta_psi.shape[0]
+        psi = dynamics.features(obs, actions)
+        return dynamics.reward.step_reward(obs, actions) + dynamics.phi(obs) @ self.theta_phi + psi[:, :k] @ self.theta_psi
 
-    def candidate_q_values(self, obs: torch.Tensor) -> torch.Tensor:
-        """Q_k at every candidate action: (N, obs_dim) -> (N, K), one (N, q) x (q, K) product."""
+    def candidate_factor(self) -> torch.Tensor:
+        """A (K, q), the action factor of psi at the candidates, kept until psi changes."""
+        key = (self.dynamics.psi.version, self.dynamics.q)
+        if self._candidate_factor is None or self._candidate_factor[0] != key:
+            self._candidate_factor = (key, self.dynamics.action_factor(self.candidates))
+        return self._candidate_factor[1]
+
+    def candidate_q_values(
+        self, obs: torch.Tensor, phi: torch.Tensor | None = None, state_factor: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Q_k at every candidate action, one (N, q) x (q, K) product.
+
+        :param obs: (N, obs_dim) states
+        :param phi: (N, p) phi(s), if already computed
+        :param state_factor: (N, q) the state factor S of psi at the states, if already computed
+        :return: (N, K)
+        """
+        phi = self.dynamics.phi(obs) if phi is None else phi
+        state_factor = self.dynamics.state_factor(obs) if state_factor is None else state_factor
         n, k = obs.shape[0], self.candidates.shape[0]
-        state_part, action_part = self.psi.factors(
-            self.obs_encoder.normalize(obs), self.action_encoder.encode(self.candidates)
-        )
-        kernel_term = (state_part * self.theta_psi) @ action_part.T
+        q_used = self.theta_psi.shape[0]
+        weighted = self.candidate_factor()[:, :q_used] * self.theta_psi
         pairs_obs = obs.repeat_interleave(k, dim=0)
         pairs_actions = self.candidates.repeat(n, *([1] * (self.candidates.ndim - 1)))
-        rewards = self.step_reward(pairs_obs, pairs_actions).reshape(n, k)
-        return rewards + kernel_term + (self.phi(obs) @ self.theta_phi).unsqueeze(1)
+        rewards = self.dynamics.reward.step_reward(pairs_obs, pairs_actions).reshape(n, k)
+        values = torch.addmm(rewards, state_factor[:, :q_used], weighted.T)
+        return values.add_((phi @ self.theta_phi).unsqueeze(1))
 
-    def greedy(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """pi_{k+1} = greedy(Q_k): the best candidate, refined by gradient ascent if configured.
+    def greedy_step(self, obs: torch.Tensor) -> GreedyStep:
+        """pi_{k+1} = greedy(Q_k) at a batch of states: the best candidate, refined by gradient
+        ascent if configured, with phi(s) and psi(s, pi(s)) built from the same state factor.
 
         :param obs: (N, obs_dim) observations
-        :return: actions (N, act_dim) in env units or (N,) indices, and their Q values (N,)
         """
-        values, best = self.candidate_q_values(obs).max(dim=1)
+        phi = self.dynamics.phi(obs)
+        state_factor = self.dynamics.state_factor(obs)
+        values, best = self.candidate_q_values(obs, phi, state_factor).max(dim=1)
         actions = self.candidates[best]
-        if self.action_encoder.discrete or self.action_search.refine_steps == 0:
-            return actions, values
-        return self._refine(obs, actions, values)
+        if not self.dynamics.action_encoder.discrete and self.action_search.refine_steps > 0:
+            actions, values = self._refine(obs, actions, values)
+            return GreedyStep(actions, values, phi, state_factor.mul_(self.dynamics.action_factor(actions)))
+        return GreedyStep(actions, values, phi, state_factor.mul_(self.candidate_factor()[best]))
+
+    def greedy(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The greedy actions and their Q values: (N, obs_dim) -> (N, act_dim) or (N,), and (N,)."""
+        step = self.greedy_step(obs)
+        return step.actions, step.values
 
     def _refine(self, obs: torch.Tensor, actions: torch.Tensor, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Projected normalised-gradient ascent on Q through psi, from the best candidate;
         a refined action replaces the candidate only where it has a higher Q."""
-        encoded = self.action_encoder.encode(actions).detach().requires_grad_(True)
+        encoder = self.dynamics.action_encoder
+        encoded = encoder.encode(actions).detach().requires_grad_(True)
         with torch.enable_grad():
             for _ in range(self.action_search.refine_steps):
-                q = self.q_values(obs, self.action_encoder.decode(encoded))
+                q = self.q_values(obs, encoder.decode(encoded))
                 (grad,) = torch.autograd.grad(q.sum(), encoded)
                 with torch.no_grad():
                     encoded += self.action_search.refine_lr * grad / grad.norm(dim=1, keepdim=True).clamp_min(1e-12)
                     encoded.clamp_(-1, 1)
-        refined = self.action_encoder.decode(encoded.detach())
+        refined = encoder.decode(encoded.detach())
         refined_values = self.q_values(obs, refined)
         better = refined_values > values
         return torch.where(better.unsqueeze(1), refined, actions), torch.where(better, refined_values, values)
@@ -165,11 +195,15 @@ class CMEPolicy(BasePolicy):
         assert isinstance(observation, torch.Tensor)
         return self.greedy(observation.float())[0]
 
-    def grow(self, centres: torch.Tensor, bandwidths: torch.Tensor) -> None:
-        """Append features to psi and zero weights to theta_psi (the zero-padding of fact 2).
+    # ------------------------------------------------------------------ improvement
+    def improve(self, value_weights: torch.Tensor, gamma: float, omega: float) -> None:
+        """Policy improvement: Q_k = (1 - omega) Q_{k-1} + omega Q^_k on the linear weights of Q,
+        ``Q^_k(s, a) = r(s, a) + gamma <w_k, E_model[phi~(S') | s, a]>``; pi_{k+1} = greedy(Q_k).
 
-        :param centres: (l, state_dim + action_dim) normalised centres
-        :param bandwidths: (l,) bandwidths
+        :param value_weights: (p,) w_k from policy evaluation (eq. (7))
+        :param gamma: discount factor
+        :param omega: smoothing step in (0, 1]
         """
-        self.psi.append(centres, bandwidths)
-        self.theta_psi = torch.nn.functional.pad(self.theta_psi, (0, bandwidths.shape[0]))
+        theta_phi, theta_psi = self.dynamics.backup_weights(value_weights, gamma)
+        self.theta_phi = smooth(self.theta_phi, theta_phi, omega)
+        self.theta_psi = smooth(self.theta_psi, theta_psi, omega)

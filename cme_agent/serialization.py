@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
-FORMAT = "cme_agent.model/1"
+FORMAT = "cme_agent.model/2"
 META = "cme_agent.json"
 TENSORS = "tensors.pt"
 

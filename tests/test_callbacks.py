@@ -59,13 +59,13 @@ def test_sb3_callbacks(tmp_path, cartpole_kwargs):
     eval_callback = EvalCallback(eval_env, n_eval_episodes=2, eval_freq=100, log_path=str(tmp_path), verbose=0)
     checkpoint = CheckpointCallback(save_freq=150, save_path=str(tmp_path / "ckpt"), name_prefix="cme")
     model.learn(200, callback=[eval_callback, checkpoint])
-    n_features_after_two_iterations = model.n_features
+    q_after_two_iterations = model.q
     model.learn(100, callback=[eval_callback, checkpoint], reset_num_timesteps=False)
     assert np.load(tmp_path / "evaluations.npz")["results"].shape[1] == 2
     assert sorted(p.name for p in (tmp_path / "ckpt").iterdir()) == ["cme_150_steps.zip", "cme_300_steps.zip"]
     # the step-300 checkpoint is taken during iteration 3's acquisition, before its planning
     loaded = CMEPolicyIteration.load(tmp_path / "ckpt" / "cme_300_steps.zip")
-    assert loaded.n_features == n_features_after_two_iterations
+    assert loaded.q == q_after_two_iterations
     assert loaded.num_timesteps == 300
     assert int(loaded.predict(eval_env.reset())[0][0]) in (0, 1)
 

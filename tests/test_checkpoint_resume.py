@@ -49,8 +49,8 @@ def test_resumed_run_ends_with_the_same_parameters(tmp_path, pendulum_kwargs):
     assert resumed.num_timesteps == 500
     for name in ("theta_psi", "theta_phi"):
         assert torch.equal(getattr(resumed.policy, name), getattr(uninterrupted.policy, name)), name
-    assert torch.equal(resumed.model.weights, uninterrupted.model.weights)
-    assert torch.equal(resumed.policy.psi.centres, uninterrupted.policy.psi.centres)
+    assert torch.equal(resumed.dynamics.weights, uninterrupted.dynamics.weights)
+    assert torch.equal(resumed.policy.dynamics.psi.centres, uninterrupted.policy.dynamics.psi.centres)
 
 
 def test_train_resumes_after_sigkill(tmp_path):

@@ -33,7 +33,7 @@ def test_env_config_composes_into_an_agent(env_name, agent_name):
     agent = instantiate(cfg.agent, env=env, seed=0, _convert_="all")
     assert type(agent).__name__ == cfg.agent._target_.rsplit(".", 1)[1]
     assert agent.gamma == cfg.agent.gamma
-    assert agent.policy.phi.width > 1
+    assert agent.policy.dynamics.phi.width > 1
     env.close()
 
 
@@ -68,7 +68,7 @@ def test_train_writes_events_model_and_summary(tmp_path):
     assert result.returncode == 0, result.stderr
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["env"] == "Pendulum-v1" and summary["total_timesteps"] == 300
-    assert summary["n_features"] > 0
+    assert summary["q"] > 0
     assert list(tmp_path.glob("events.out.tfevents.*"))
     assert (tmp_path / "model.zip").exists() and (tmp_path / "progress.csv").exists()
     assert "return" in result.stdout

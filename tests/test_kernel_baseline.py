@@ -19,7 +19,7 @@ def test_kernel_ridge_weights_solve_the_regularised_system():
 def test_every_point_is_a_feature_and_b_is_the_kernel_solution(pendulum_kwargs):
     model = KernelPolicyIteration("CMEPolicy", "Pendulum-v1", seed=0, kernel_l2=1e-3, **pendulum_kwargs)
     model.learn(300)
-    assert model.n_features == len(model.store) == model.policy.theta_psi.shape[0]
-    _, psi, targets = model._regression_data(model.store.get(slice(0, len(model.store))))
+    assert model.q == len(model.store) == model.policy.theta_psi.shape[0]
+    psi, targets = model.dynamics.regression_data(model.store.get(slice(0, len(model.store))))
     expected = kernel_ridge_weights(psi, targets, 1e-3)
-    assert torch.allclose(model.model.weights, expected, atol=1e-5)
+    assert torch.allclose(model.dynamics.weights, expected, atol=1e-5)

@@ -19,13 +19,13 @@ def test_same_seed_same_parameters_and_returns(pendulum_kwargs):
         env = gym.make("Pendulum-v1")
         env.reset(seed=7)
         returns, _ = evaluate_policy(model, env, n_eval_episodes=2, return_episode_rewards=True)
-        results.append((model.policy.theta_psi.clone(), model.model.weights.clone(), returns))
+        results.append((model.policy.theta_psi.clone(), model.dynamics.weights.clone(), returns))
     assert torch.equal(results[0][0], results[1][0])
     assert torch.equal(results[0][1], results[1][1])
     assert results[0][2] == results[1][2]
     other = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=4, **pendulum_kwargs).learn(300)
-    same_shape = other.model.weights.shape == results[0][1].shape
-    assert not same_shape or not torch.equal(other.model.weights, results[0][1])  # another seed, another model
+    same_shape = other.dynamics.weights.shape == results[0][1].shape
+    assert not same_shape or not torch.equal(other.dynamics.weights, results[0][1])  # another seed, another model
 
 
 @pytest.mark.parametrize("env_id", sorted(KNOWN_REWARDS))
@@ -53,12 +53,12 @@ def test_unknown_reward_is_learned_and_said(capsys, pendulum_kwargs):
 
     env = gym.wrappers.TimeLimit(PendulumEnv(), 200)  # made without gym.make: no id, no known reward
     model = CMEPolicyIteration("CMEPolicy", env, seed=0, verbose=1, **pendulum_kwargs)
-    assert model.reward_source == "learned" and model.model.learn_reward
+    assert model.reward_source == "learned" and model.dynamics.learn_reward
     model.learn(300)
     assert "reward is learned" in capsys.readouterr().out
     states = torch.tensor([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
-    psi = model.policy.state_action_features(states, torch.zeros(2, 1))
-    learned = psi @ model.model.reward_weights()
+    psi = model.dynamics.features(states, torch.zeros(2, 1))
+    learned = psi @ model.dynamics.reward_weights()[1]
     assert learned[0] > learned[1]  # upright beats hanging
 
 
@@ -102,21 +102,21 @@ def test_non_finite_observation_stops_learning(pendulum_kwargs):
     model.set_logger(configure(None, []))
     with pytest.raises(ValueError, match=r"non-finite observation at step 51"):
         model.learn(300)
-    assert torch.isfinite(model.model.weights).all()
+    assert torch.isfinite(model.dynamics.weights).all()
 
 
 def test_device_is_honoured(pendulum_kwargs):
     model = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", device="cpu", **pendulum_kwargs)
     assert model.device.type == "cpu" and model.policy.device.type == "cpu"
-    assert model.model.weights.device.type == "cpu"
+    assert model.dynamics.weights.device.type == "cpu"
 
 
 def test_feature_budget_caps_q(pendulum_kwargs):
     kwargs = {**pendulum_kwargs, "feature_selection": {"subsample_size": 300, "max_features": 20, "max_total_features": 30}}
     model = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=0, **kwargs)
     model.learn(500)
-    assert model.n_features == 30
-    assert model.model.weights.shape[1] == model.policy.theta_psi.shape[0] == 30
+    assert model.q == 30
+    assert model.dynamics.weights.shape[1] == model.policy.theta_psi.shape[0] == 30
 
 
 def test_non_finite_reward_stops_learning(pendulum_kwargs):
@@ -136,13 +136,13 @@ def test_diverging_model_update_is_undone_and_backed_off(pendulum_kwargs, monkey
     model = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=0, **pendulum_kwargs)
     model.set_logger(configure(None, []))
     model.learn(200)
-    weights = model.model.weights.clone()
+    weights = model.dynamics.weights.clone()
 
     def explode(weights, psi, targets, learning_rate, l2):
         weights.mul_(1e30)
 
-    monkeypatch.setattr("cme_agent.algorithm.sgd_step", explode)
+    monkeypatch.setattr("cme_agent.dynamics.cme.sgd_step", explode)
     with pytest.warns(RuntimeWarning, match="model update diverged"):
         model.model_update()
-    assert torch.equal(model.model.weights, weights)
+    assert torch.equal(model.dynamics.weights, weights)
     assert model.model_step_scale == 0.5

@@ -3,7 +3,6 @@
 import pytest
 import torch
 
-from cme_agent.dynamics import CMEModel
 from cme_agent.planning import bellman_residual_descent, bellman_residual_weights, lstd_weights, smooth
 
 
@@ -27,13 +26,12 @@ def test_evaluation_recovers_the_exact_value_of_a_finite_mdp(feature_dynamics):
 
     # one-hot phi over states, one-hot psi over state-actions: the CME B psi is exact
     phi = torch.eye(n_states, dtype=torch.float64)
-    model = CMEModel(n_states, n_states * n_actions, feature_dynamics, learn_reward=False).double()
+    weights = torch.zeros(n_states, n_states * n_actions, dtype=torch.float64)
     for s in range(n_states):
         for a in range(n_actions):
-            column = transitions[s, a] - (phi[s] if feature_dynamics else 0)
-            model.weights[:, s * n_actions + a] = column
+            weights[:, s * n_actions + a] = transitions[s, a] - (phi[s] if feature_dynamics else 0)
     psi = torch.nn.functional.one_hot(states * n_actions + policy, n_states * n_actions).double()
-    next_phi = model.expected_next_phi(phi, psi)
+    next_phi = psi @ weights.T + (phi if feature_dynamics else 0)
 
     for solver in (bellman_residual_weights, lstd_weights):
         w = solver(phi, next_phi, r_pi, gamma, l2=1e-12)

@@ -17,9 +17,13 @@ def _policy(action_space, **kwargs):
     return CMEPolicy(obs_space, action_space, phi={"resolution": [5]}, **kwargs)
 
 
+def _grow(policy, centres, bandwidths):
+    """Append kernel features with zero model weights, as feature selection would."""
+    policy.dynamics.grow(centres, bandwidths, torch.zeros(policy.dynamics.weights.shape[0], len(bandwidths)))
+
+
 def test_greedy_discrete_enumerates_the_actions():
-    policy = _policy(spaces.Discrete(4))
-    policy.reward_spec = RewardSpec(lambda obs, a: (a == 2).float() - 0.1 * a.float())
+    policy = _policy(spaces.Discrete(4), reward=RewardSpec(lambda obs, a: (a == 2).float() - 0.1 * a.float()))
     actions, values = policy.greedy(torch.zeros(3, 2))
     assert actions.tolist() == [2, 2, 2]
     assert torch.allclose(values, torch.full((3,), 0.8))
@@ -28,12 +32,12 @@ def test_greedy_discrete_enumerates_the_actions():
 def test_greedy_box_grid_and_refinement():
     target = 0.33
     reward = RewardSpec(lambda obs, a: -((a[:, 0] - target) ** 2))
-    grid = _policy(spaces.Box(-2.0, 2.0, (1,), np.float32))
-    grid.reward_spec = reward
+    grid = _policy(spaces.Box(-2.0, 2.0, (1,), np.float32), reward=reward)
     actions, _ = grid.greedy(torch.zeros(2, 2))
     assert torch.all((actions[:, 0] - target).abs() <= 0.1)  # grid spacing 0.2
-    refined = _policy(spaces.Box(-2.0, 2.0, (1,), np.float32), action_search={"refine_steps": 30, "refine_lr": 0.005})
-    refined.reward_spec = reward
+    refined = _policy(
+        spaces.Box(-2.0, 2.0, (1,), np.float32), action_search={"refine_steps": 30, "refine_lr": 0.005}, reward=reward
+    )
     actions, _ = refined.greedy(torch.zeros(2, 2))
     assert torch.all((actions[:, 0] - target).abs() < 0.02)
 
@@ -41,16 +45,16 @@ def test_greedy_box_grid_and_refinement():
 def test_greedy_follows_the_psi_weights():
     policy = _policy(spaces.Box(-1.0, 1.0, (1,), np.float32))
     # one kernel feature centred at state (0, 0) and normalised action 0.6, with a positive weight
-    policy.grow(torch.tensor([[0.0, 0.0, 0.6]]), torch.tensor([0.2]))
-    policy.theta_psi.fill_(1.0)
+    _grow(policy, torch.tensor([[0.0, 0.0, 0.6]]), torch.tensor([0.2]))
+    policy.theta_psi = torch.ones(1)
     actions, _ = policy.greedy(torch.zeros(1, 2))
     assert float(actions[0, 0]) == pytest.approx(0.6, abs=1e-5)
 
 
 def test_greedy_high_dimensional_box_uses_sampled_candidates():
-    policy = _policy(spaces.Box(-1.0, 1.0, (3,), np.float32), action_search={"n_samples": 64})
+    reward = RewardSpec(lambda obs, a: -(a**2).sum(1))
+    policy = _policy(spaces.Box(-1.0, 1.0, (3,), np.float32), action_search={"n_samples": 64}, reward=reward)
     assert policy.candidates.shape == (65, 3)
-    policy.reward_spec = RewardSpec(lambda obs, a: -(a**2).sum(1))
     actions, _ = policy.greedy(torch.zeros(4, 2))
     assert torch.equal(actions, torch.zeros(4, 3))  # the centre is always a candidate
 
@@ -58,9 +62,9 @@ def test_greedy_high_dimensional_box_uses_sampled_candidates():
 def test_factorised_candidate_q_equals_paired_q():
     policy = _policy(spaces.Box(-1.0, 1.0, (2,), np.float32), action_search={"grid_size": 5})
     generator = torch.Generator().manual_seed(0)
-    policy.grow(torch.rand(30, 4, generator=generator) * 2 - 1, torch.rand(30, generator=generator) + 0.1)
+    _grow(policy, torch.rand(30, 4, generator=generator) * 2 - 1, torch.rand(30, generator=generator) + 0.1)
     policy.theta_psi = torch.randn(30, generator=generator)
-    policy.theta_phi = torch.randn(policy.phi.width, generator=generator)
+    policy.theta_phi = torch.randn(policy.dynamics.p, generator=generator)
     obs = torch.rand(6, 2, generator=generator) * 2 - 1
     table = policy.candidate_q_values(obs)
     for k, action in enumerate(policy.candidates):
@@ -116,12 +120,12 @@ def test_infinite_observation_bounds_ask_for_normalisation():
 
 def test_known_envs_get_their_observation_facts():
     pendulum = CMEPolicyIteration("CMEPolicy", "Pendulum-v1")
-    assert pendulum.policy.obs_encoder.angle_pairs == [(0, 1)]
-    assert pendulum.policy.phi.width == 11 * 11 + 1  # angle x velocity grid
+    assert pendulum.policy.dynamics.obs_encoder.angle_pairs == [(0, 1)]
+    assert pendulum.policy.dynamics.phi.width == 11 * 11 + 1  # angle x velocity grid
     cartpole = CMEPolicyIteration("CMEPolicy", "CartPole-v1")
-    assert float(cartpole.policy.obs_encoder.half_range[1]) == 3.0
+    assert float(cartpole.policy.dynamics.obs_encoder.half_range[1]) == 3.0
     explicit = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", policy_kwargs={"observation": {"angle_pairs": []}})
-    assert explicit.policy.obs_encoder.angle_pairs == []
+    assert explicit.policy.dynamics.obs_encoder.angle_pairs == []
 
 
 @pytest.mark.parametrize(
@@ -146,5 +150,5 @@ def test_bad_hyperparameters_name_the_key(kwargs, key):
 def test_custom_phi_module_is_used():
     phi = torch.nn.Linear(3, 8)
     model = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", policy_kwargs={"phi": phi})
-    assert model.policy.phi.width == 9
-    assert model.model.phi_weights.shape == (9, 0)
+    assert model.policy.dynamics.phi.width == 9
+    assert model.dynamics.phi_weights.shape == (9, 0)

@@ -63,13 +63,16 @@ def test_greedy_actions_always_lie_in_the_action_space(space, seed, refine):
     generator = torch.Generator().manual_seed(seed)
     obs_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
     policy = CMEPolicy(
-        obs_space, space, phi={"resolution": [4]}, action_search={"refine_steps": refine, "refine_lr": 0.5, "n_samples": 32}
+        obs_space,
+        space,
+        phi={"resolution": [4]},
+        action_search={"refine_steps": refine, "refine_lr": 0.5, "n_samples": 32},
+        reward=RewardSpec(lambda obs, a: torch.zeros(obs.shape[0])),
     )
-    policy.grow(
-        torch.rand(12, 2 + policy.action_encoder.dim, generator=generator) * 4 - 2, torch.rand(12, generator=generator) + 0.05
-    )
+    dynamics = policy.dynamics
+    centres = torch.rand(12, 2 + dynamics.action_encoder.dim, generator=generator) * 4 - 2
+    dynamics.grow(centres, torch.rand(12, generator=generator) + 0.05, torch.zeros(dynamics.weights.shape[0], 12))
     policy.theta_psi = torch.randn(12, generator=generator) * 10
-    policy.reward_spec = RewardSpec(lambda obs, a: torch.zeros(obs.shape[0]))
     obs = torch.rand(16, 2, generator=generator) * 4 - 2  # also outside the observation box
     actions, _ = policy.greedy(obs)
     for action in actions.numpy():

@@ -55,7 +55,7 @@ def test_the_file_holds_only_json_and_tensors(saved):
     with zipfile.ZipFile(saved) as archive:
         assert sorted(archive.namelist()) == sorted([META, TENSORS])
         meta = json.loads(archive.read(META))
-    assert meta["init"]["gamma"] == 0.98 and meta["state"]["n_features"] > 0
+    assert meta["init"]["gamma"] == 0.98 and meta["state"]["iteration"] > 0
 
 
 @pytest.mark.parametrize("cut", [0.3, 0.9])
@@ -89,7 +89,7 @@ def test_corrupt_description_gives_a_clear_error(saved, tmp_path):
         CMEPolicyIteration.load(corrupt)
     mismatched = tmp_path / "mismatched.zip"
     meta = json.loads(zipfile.ZipFile(saved).read(META))
-    meta["state"]["n_features"] += 3
+    meta["init"]["policy_kwargs"]["phi"]["resolution"] = [5, 5]  # another phi width than the tensors have
     _rewrite(saved, mismatched, META, json.dumps(meta).encode())
     with pytest.raises(ModelFileError, match="does not match"):
         CMEPolicyIteration.load(mismatched)
@@ -109,7 +109,7 @@ def test_custom_phi_must_be_passed_again(tmp_path, pendulum_kwargs):
     with pytest.raises(ModelFileError, match="custom phi"):
         CMEPolicyIteration.load(tmp_path / "custom.zip")
     loaded = CMEPolicyIteration.load(tmp_path / "custom.zip", policy_kwargs={"phi": torch.nn.Linear(3, 5)})
-    assert torch.equal(loaded.policy.phi.feature_map.weight, phi.weight)  # the weights come from the file
+    assert torch.equal(loaded.policy.dynamics.phi.feature_map.weight, phi.weight)  # the weights come from the file
 
 
 def test_save_is_atomic(saved, monkeypatch, pendulum_kwargs):

@@ -9,11 +9,11 @@ from cme_agent import CMEPolicyIteration
 def test_save_load_after_growth_gives_identical_actions(tmp_path, pendulum_kwargs):
     model = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=0, **pendulum_kwargs)
     model.learn(400)
-    assert model.n_features > 0
+    assert model.q > 0
     path = tmp_path / "pendulum_cme.zip"
     model.save(path)
     loaded = CMEPolicyIteration.load(path)
-    assert loaded.n_features == model.n_features
+    assert loaded.q == model.q
     rng = np.random.default_rng(0)
     angles = rng.uniform(-np.pi, np.pi, 64)
     obs = np.stack([np.cos(angles), np.sin(angles), rng.uniform(-8, 8, 64)], 1).astype(np.float32)
@@ -22,7 +22,7 @@ def test_save_load_after_growth_gives_identical_actions(tmp_path, pendulum_kwarg
     np.testing.assert_array_equal(actual, expected)
     for name in ("theta_psi", "theta_phi"):
         np.testing.assert_array_equal(getattr(loaded.policy, name).numpy(), getattr(model.policy, name).numpy())
-    np.testing.assert_array_equal(loaded.model.weights.numpy(), model.model.weights.numpy())
+    np.testing.assert_array_equal(loaded.dynamics.weights.numpy(), model.dynamics.weights.numpy())
 
 
 def test_loaded_model_keeps_learning(tmp_path, pendulum_kwargs):
@@ -30,11 +30,11 @@ def test_loaded_model_keeps_learning(tmp_path, pendulum_kwargs):
     model.learn(200)
     model.save(tmp_path / "m.zip")
     loaded = CMEPolicyIteration.load(tmp_path / "m.zip", env=model.get_env())
-    before = loaded.n_features
+    before = loaded.q
     loaded.learn(200, reset_num_timesteps=False)
     assert loaded.num_timesteps == 400
-    assert loaded.n_features >= before
-    assert loaded.model.weights.shape[1] == loaded.policy.theta_psi.shape[0] == loaded.n_features
+    assert loaded.q >= before
+    assert loaded.dynamics.weights.shape[1] == loaded.policy.theta_psi.shape[0] == loaded.q
 
 
 def test_user_reward_must_be_given_again(tmp_path, pendulum_kwargs):

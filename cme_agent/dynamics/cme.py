@@ -1,0 +1,231 @@
+"""CMEDynamics: the model mu(s, a) = B psi(s, a) of E[phi~(S') | s, a], owned end to end
+(paper eq. (1), section 2.3).
+
+One module holds everything the model is made of and everything computed from it: the
+encoders of observations and actions, the state features phi, the growing kernel bank psi
+and the weights B; the regression inputs and targets of a batch, the loss and the SGD step
+of eq. (6); the matching-pursuit dictionary of eq. (5); :meth:`CMEDynamics.grow`, the only
+place where q changes; the expected successor features; and the expected reward, composed
+once from the known step reward, the termination probability and (when the reward is not
+known) a learned reward row of B.
+
+Regression target of a transition: the continuation-weighted successor feature
+``phi~(s') = (1 - terminated) phi(s')`` (terminal states are absorbing with phi = 0), minus
+``phi(s)`` in the feature-dynamics form of section 2.3. Since phi ends with a constant 1, the
+model's last phi row predicts the continuation probability; when the reward is learned, one
+more row regresses ``r / reward_scale`` on psi.
+
+Shapes: N a batch, p = width of phi, q = width of psi, p_out = p (+ 1 with a learned reward).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import torch
+from gymnasium import spaces
+from torch import nn
+
+from cme_agent.buffer import Transitions
+from cme_agent.config import ObservationConfig, StateFeatureConfig, build_config
+from cme_agent.dynamics.sgd import sgd_step
+from cme_agent.encoding import ActionEncoder, ObservationEncoder
+from cme_agent.kernel_bank import KernelBank, gaussian_kernel, resize_buffers
+from cme_agent.rewards import RewardSpec
+from cme_agent.state_features import make_state_features
+
+PhiSpec = StateFeatureConfig | dict[str, Any] | nn.Module | Callable[[torch.Tensor], torch.Tensor] | None
+
+
+def _zero_reward(obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+    return torch.zeros(obs.shape[0], dtype=obs.dtype, device=obs.device)
+
+
+class CMEDynamics(nn.Module):
+    """The CME model of the dynamics and of the expected reward.
+
+    :param observation_space: a 1-D ``Box``
+    :param action_space: a 1-D ``Box`` or a ``Discrete``
+    :param phi: the state feature map: a :class:`StateFeatureConfig` or its dict, or a user map
+        (``nn.Module`` or callable) from obs (N, obs_dim) to (N, p0)
+    :param observation: normalisation bounds and angle pairs (:class:`ObservationConfig` or dict)
+    :param feature_dynamics: regress phi~(s') - phi(s) (section 2.3) instead of phi~(s')
+    :param reward: the known reward; None: learn it by regression on psi (one more row of B)
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Box,
+        action_space: spaces.Box | spaces.Discrete,
+        phi: PhiSpec = None,
+        observation: ObservationConfig | dict[str, Any] | None = None,
+        feature_dynamics: bool = True,
+        reward: RewardSpec | None = None,
+    ) -> None:
+        super().__init__()
+        self.obs_encoder = ObservationEncoder(observation_space, build_config(ObservationConfig, observation, "observation"))
+        self.action_encoder = ActionEncoder(action_space)
+        phi_config = phi if callable(phi) else build_config(StateFeatureConfig, phi, "phi")
+        self.phi = make_state_features(phi_config, self.obs_encoder)
+        self.psi = KernelBank(self.obs_encoder.dim, self.action_encoder.dim)
+        self.feature_dynamics = feature_dynamics
+        self.learn_reward = reward is None
+        self.reward = reward if reward is not None else RewardSpec(_zero_reward)
+        self.register_buffer("weights", torch.zeros(self.p + int(self.learn_reward), 0))
+        self.register_buffer("reward_scale", torch.ones(()))
+
+    # ------------------------------------------------------------------ sizes
+    @property
+    def p(self) -> int:
+        """p, the width of phi (its last feature is the constant 1)."""
+        return self.phi.width
+
+    @property
+    def q(self) -> int:
+        """q, the width of psi: the number of selected kernel features."""
+        return self.psi.q
+
+    @property
+    def phi_weights(self) -> torch.Tensor:
+        """(p, q): the rows of B that predict phi."""
+        return self.weights[: self.p]
+
+    # ------------------------------------------------------------------ inputs and targets
+    def encode(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """Normalised state-actions z = (z_s, z_a): (N, obs_dim), (N, ...) -> (N, obs_dim + action_dim)."""
+        return torch.cat([self.obs_encoder.normalize(obs), self.action_encoder.encode(actions)], dim=1)
+
+    def features(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """psi(s, a) at paired states and actions: (N, obs_dim), (N, ...) -> (N, q)."""
+        return self.psi(self.encode(obs, actions))
+
+    def state_factor(self, obs: torch.Tensor) -> torch.Tensor:
+        """S (N, q), psi(s, a)[j] = S[s, j] * A[a, j]: :param obs: (N, obs_dim) observations."""
+        return self.psi.state_factor(self.obs_encoder.normalize(obs))
+
+    def action_factor(self, actions: torch.Tensor) -> torch.Tensor:
+        """A (K, q), the action factor of psi: :param actions: (K, ...) actions in env units."""
+        return self.psi.action_factor(self.action_encoder.encode(actions))
+
+    def targets(self, batch: Transitions) -> torch.Tensor:
+        """Regression targets y of a batch: (N, p_out), phi~(s') (- phi(s)) (and r / reward_scale)."""
+        target = self.phi(batch.next_obs) * (~batch.terminated).unsqueeze(1).to(batch.next_obs)
+        if self.feature_dynamics:
+            target = target - self.phi(batch.obs)
+        if self.learn_reward:
+            target = torch.cat([target, (batch.rewards / self.reward_scale).unsqueeze(1)], dim=1)
+        return target
+
+    def regression_data(self, batch: Transitions) -> tuple[torch.Tensor, torch.Tensor]:
+        """Inputs psi (N, q) and targets y (N, p_out) of a batch."""
+        return self.features(batch.obs, batch.actions), self.targets(batch)
+
+    def calibrate_reward_scale(self, rewards: torch.Tensor) -> None:
+        """Before the first feature, scale the learned reward row to unit spread: :param rewards: (N,)."""
+        if self.learn_reward and self.q == 0:
+            self.reward_scale.fill_(float(rewards.std().clamp_min(1e-3)))
+
+    # ------------------------------------------------------------------ loss and updates
+    def predict(self, psi: torch.Tensor) -> torch.Tensor:
+        """B psi: :param psi: (N, q). :return: (N, p_out)."""
+        return psi @ self.weights.T
+
+    def loss(self, psi: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+        """Mean squared residual per transition, (1/N) sum_i ||y_i - B psi_i||^2 (loss (4) / N)."""
+        return ((targets - self.predict(psi)) ** 2).sum(1).mean()
+
+    def sgd_update(self, batches: Transitions, batch_size: int, learning_rate: float, l2: float, chunk: int = 16) -> None:
+        """Consecutive minibatch steps of eq. (6) on B, in place.
+
+        The inputs and targets of ``chunk`` minibatches are built at once (they do not depend on
+        B); the steps themselves are sequential.
+
+        :param batches: the minibatches of all steps, concatenated in order (a multiple of ``batch_size``)
+        :param batch_size: transitions per step
+        :param learning_rate: normalised step in (0, 2) (see :func:`~cme_agent.dynamics.sgd.sgd_step`)
+        :param l2: ridge coefficient lambda
+        :param chunk: minibatches whose inputs are built together
+        """
+        span = batch_size * chunk
+        for start in range(0, len(batches), span):
+            part = Transitions(*(tensor[start : start + span] for tensor in vars(batches).values()))
+            psi, targets = self.regression_data(part)
+            for step in range(0, len(part), batch_size):
+                sgd_step(self.weights, psi[step : step + batch_size], targets[step : step + batch_size], learning_rate, l2)
+
+    def dictionary(self, z: torch.Tensor, centres: torch.Tensor, bandwidths: torch.Tensor) -> torch.Tensor:
+        """The candidate atoms of eq. (5): Gaussian kernels centred at ``centres`` at every bandwidth.
+
+        :param z: (n, d) normalised state-actions where the atoms are evaluated
+        :param centres: (m, d) normalised centres (the new state-actions)
+        :param bandwidths: (b,) bandwidths h
+        :return: (n, b * m) atoms; column ``i * m + j`` is centre j at bandwidth i
+        """
+        inv = (1 / (2 * bandwidths**2)).repeat_interleave(len(centres))
+        return gaussian_kernel(z, centres.repeat(len(bandwidths), 1), inv)
+
+    def grow(self, centres: torch.Tensor, bandwidths: torch.Tensor, weights: torch.Tensor) -> None:
+        """Append features to psi and their weights to B, B_k = (B_{k-1}, weights): the only
+        place q changes.
+
+        :param centres: (l, d) normalised centres
+        :param bandwidths: (l,) bandwidths
+        :param weights: (p_out, l) columns of B for the new features
+        """
+        self.psi.append(centres, bandwidths)
+        self.weights = torch.cat([self.weights, weights.to(self.weights)], dim=1)
+
+    def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
+        resize_buffers(self, state_dict, prefix, {"weights": 1})
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    # ------------------------------------------------------------------ what planning reads
+    def expected_next_phi(self, phi: torch.Tensor, psi: torch.Tensor) -> torch.Tensor:
+        """E_model[phi~(S') | s, a]: (N, p) from phi(s) (N, p) and psi(s, a) (N, q)."""
+        predicted = psi @ self.phi_weights.T
+        return predicted.add_(phi) if self.feature_dynamics else predicted
+
+    def reward_weights(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The model's linear part of the expected reward,
+        ``r(s, a) = step_reward(s, a) + <c_phi, phi(s)> + <c_psi, psi(s, a)>``:
+        the terminal bonus times P_model(terminate | s, a) (read off the constant row of phi:
+        E[1 - done] = 1 + B_const psi with feature dynamics), plus the learned reward row.
+
+        :return: c_phi (p,) and c_psi (q,)
+        """
+        c_phi = self.weights.new_zeros(self.p)
+        c_psi = self.weights.new_zeros(self.q)
+        bonus = self.reward.terminal_bonus
+        if bonus:
+            c_psi -= bonus * self.weights[self.p - 1]
+            if not self.feature_dynamics:
+                c_phi[-1] += bonus
+        if self.learn_reward:
+            c_psi += self.weights[-1] * self.reward_scale
+        return c_phi, c_psi
+
+    def expected_reward(self, obs: torch.Tensor, actions: torch.Tensor, phi: torch.Tensor, psi: torch.Tensor) -> torch.Tensor:
+        """r(s, a) = step reward + terminal bonus * P_model(terminate | s, a) + learned reward.
+
+        :param obs: (N, obs_dim) states
+        :param actions: (N, ...) actions in env units
+        :param phi: (N, p) phi(s)
+        :param psi: (N, q) psi(s, a)
+        :return: (N,)
+        """
+        c_phi, c_psi = self.reward_weights()
+        return self.reward.step_reward(obs, actions) + phi @ c_phi + psi @ c_psi
+
+    def backup_weights(self, value_weights: torch.Tensor, gamma: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """The linear weights of ``Q^(s, a) = r(s, a) + gamma <w, E_model[phi~(S') | s, a]>``
+        beyond the step reward: Q^ = step_reward + <theta_phi, phi(s)> + <theta_psi, psi(s, a)>.
+
+        :param value_weights: (p,) w
+        :param gamma: discount factor
+        :return: theta_phi (p,) and theta_psi (q,)
+        """
+        c_phi, c_psi = self.reward_weights()
+        theta_psi = c_psi.add_(self.phi_weights.T @ value_weights, alpha=gamma)
+        theta_phi = c_phi.add_(value_weights, alpha=gamma) if self.feature_dynamics else c_phi
+        return theta_phi, theta_psi
