@@ -1,18 +1,22 @@
-"""Cost per iteration against the size of D: the paper's central claim (DESIGN.md, fact 1).
+"""Cost of one iteration: against its FLOP floor, and against the size of D (docs/design.md, fact 1).
 
-Two agents with the same model (same q, same psi, same B) differ only in |D| (5,000 vs
-50,000 Pendulum transitions). Each phase of one iteration is timed on both, alternately, over
-several repeats, restoring the model after each so q stays fixed; the medians and their
-ratio are printed and written to results/iteration_cost.md. Also times matching pursuit
-picking 50 features from 1,000 candidates on a 2,000-point subsample.
+An agent of the Pendulum-v1 config (|C| = 8,000, p = 316, K = 21, 5 rounds) is grown to
+q features by :meth:`~cme_agent.CMEPolicyIteration.train_iteration` on random transitions.
+Then one iteration (``train_iteration`` on 200 new transitions, the model restored afterwards
+so q stays fixed) is timed in thread CPU time (1 torch thread), with D of two sizes
+(5,000 and 50,000 transitions), alternately over several repeats. Its matrix FLOPs are
+counted by ``torch.utils.flop_counter``; the floor is that count at this machine's float32
+GEMM rate, measured in the same run on the iteration's largest product. Also times matching
+pursuit picking 50 features from 1,000 candidates on a 2,000-point subsample.
 
-    python benchmarks/iteration_cost.py [--repeats 7] [--q 600]
+    python benchmarks/iteration_cost.py [--repeats 5] [--q 2000]
 """
 
 from __future__ import annotations
 
 import argparse
 import copy
+import dataclasses
 import statistics
 import time
 
@@ -22,11 +26,13 @@ import torch
 from common import RESULTS, command_line, compose_config, markdown_table
 from hydra.utils import instantiate
 from stable_baselines3.common.logger import configure
+from torch.utils.flop_counter import FlopCounterMode
 
 from cme_agent import CMEPolicyIteration
 from cme_agent.dynamics import matching_pursuit
 
 PHASES = ("feature_selection", "model_update", "policy_evaluation", "policy_improvement")
+M = 200
 
 
 def random_transitions(n: int, seed: int) -> tuple[np.ndarray, ...]:
@@ -44,37 +50,65 @@ def random_transitions(n: int, seed: int) -> tuple[np.ndarray, ...]:
     return tuple(np.asarray(column) for column in columns)
 
 
-def make_agent(seed: int) -> CMEPolicyIteration:
-    cfg = compose_config(["env=pendulum"])
-    agent = instantiate(cfg.agent, env="Pendulum-v1", seed=seed, _convert_="all")
+def make_agent(seed: int, collection_size: int) -> CMEPolicyIteration:
+    """The Pendulum-v1 config with no budget on q (so an iteration at q still runs matching pursuit)."""
+    overrides = ["env=pendulum", "agent.feature_selection.max_total_features=null"]
+    overrides.append(f"agent.evaluation.collection_size={collection_size}")
+    agent = instantiate(compose_config(overrides).agent, env="Pendulum-v1", seed=seed, _convert_="all")
     agent.set_logger(configure(None, []))
     return agent
 
 
-def grow(agent: CMEPolicyIteration, data: tuple[np.ndarray, ...], target_q: int, m: int) -> None:
-    """Run feature selection and model updates on successive blocks of m transitions until q >= target_q."""
-    start = 0
-    while agent.n_features < target_q:
-        block = tuple(column[start : start + m] for column in data)
-        before = len(agent.store)
-        agent.store.add(*block)
-        agent.feature_selection(agent.store.get(slice(before, len(agent.store))))
-        agent.model_update()
-        start += m
+def add_block(agent: CMEPolicyIteration, block: tuple[np.ndarray, ...]) -> None:
+    """Append a block of transitions to D and run one training iteration on it."""
+    before = len(agent.store)
+    agent.store.add(*block)
+    agent.train_iteration(agent.store.get(slice(before, len(agent.store))))
 
 
-def time_iteration(agent: CMEPolicyIteration, new_block: tuple[np.ndarray, ...]) -> dict[str, float]:
-    """Seconds of each phase of one iteration on new_block; the agent's model is restored afterwards."""
-    saved = copy.deepcopy(agent.policy), copy.deepcopy(agent.model), agent.n_features, agent.store.size
+def grow(agent: CMEPolicyIteration, data: tuple[np.ndarray, ...], target_q: int) -> int:
+    """Train on successive blocks of M transitions until q >= target_q (one evaluation round per
+    iteration, to get there sooner); returns the transitions used."""
+    config, start = agent.evaluation_config, 0
+    agent.evaluation_config = dataclasses.replace(config, rounds=1)
+    while agent.q < target_q:
+        add_block(agent, tuple(column[start : start + M] for column in data))
+        start += M
+    agent.evaluation_config = config
+    return start
+
+
+def timed_iteration(agent: CMEPolicyIteration, block: tuple[np.ndarray, ...]) -> tuple[float, dict[str, float]]:
+    """Thread CPU seconds of one iteration on ``block`` and its wall seconds per phase; the agent is restored."""
+    saved = copy.deepcopy(agent.policy), agent.store.size, agent._torch_rng.get_state()
     agent._phase_seconds = {}
-    agent.store.add(*new_block)
-    agent.feature_selection(agent.store.get(slice(saved[-1], len(agent.store))))
-    agent.model_update()
-    for _ in range(agent.evaluation_config.rounds):
-        agent.policy_improvement(agent.policy_evaluation(agent.draw_collection()))
-    seconds = dict(agent._phase_seconds)
-    agent.policy, agent.model, agent.n_features, agent.store.size = saved
-    return seconds
+    start = time.thread_time()
+    add_block(agent, block)
+    seconds = time.thread_time() - start
+    agent.policy, agent.store.size = saved[0], saved[1]
+    agent._torch_rng.set_state(saved[2])
+    return seconds, dict(agent._phase_seconds)
+
+
+def counted_flops(agent: CMEPolicyIteration, block: tuple[np.ndarray, ...]) -> int:
+    """Matrix FLOPs of one iteration on ``block`` (the agent is restored)."""
+    counter = FlopCounterMode(display=False)
+    with counter:
+        timed_iteration(agent, block)
+    return counter.get_total_flops()
+
+
+def gemm_rate(n: int, q: int, p: int, repeats: int) -> float:
+    """Best float32 GEMM rate (FLOP per thread-CPU second) of an (n, q) x (q, p) product."""
+    generator = torch.Generator().manual_seed(0)
+    a, b = torch.rand(n, q, generator=generator), torch.rand(q, p, generator=generator)
+    out = torch.empty(n, p)
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.thread_time()
+        torch.mm(a, b, out=out)
+        best = min(best, time.thread_time() - start)
+    return 2 * n * q * p / best
 
 
 def matching_pursuit_seconds(repeats: int) -> float:
@@ -83,52 +117,64 @@ def matching_pursuit_seconds(repeats: int) -> float:
     residual = torch.randn(2000, 316, generator=generator)
     times = []
     for _ in range(repeats):
-        start = time.perf_counter()
+        start = time.thread_time()
         result = matching_pursuit(atoms, residual, threshold=1e-9, max_atoms=50)
-        times.append(time.perf_counter() - start)
+        times.append(time.thread_time() - start)
         assert len(result.indices) == 50
     return statistics.median(times)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--repeats", type=int, default=7)
-    parser.add_argument("--q", type=int, default=600, help="features to grow before timing")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--q", type=int, default=2000, help="features to grow before timing")
+    parser.add_argument("--collection-size", type=int, default=8000, help="|C|")
     parser.add_argument("--small", type=int, default=5_000)
     parser.add_argument("--large", type=int, default=50_000)
     args = parser.parse_args()
     torch.set_num_threads(1)
 
-    m = 200
-    data = random_transitions(args.large + m * (args.repeats + 1), seed=0)
-    small, large = make_agent(0), make_agent(0)
-    grow(small, data, args.q, m)
-    large.policy, large.model = copy.deepcopy(small.policy), copy.deepcopy(small.model)
-    large.store.add(*(column[small.store.size : args.large] for column in data))
-    large.store.add(*(column[: small.store.size] for column in data))
-    small.store.add(*(column[small.store.size : args.small] for column in data))
-    print(f"|D| = {len(small.store)} vs {len(large.store)}, q = {small.n_features}, p = {small.policy.phi.width}")
+    data = random_transitions(args.large + M * (args.repeats + 2), seed=0)
+    small = make_agent(0, args.collection_size)
+    used = grow(small, data, args.q)
+    large = make_agent(0, args.collection_size)
+    large.policy = copy.deepcopy(small.policy)
+    large.store.add(*(column[used : args.large] for column in data))
+    large.store.add(*(column[:used] for column in data))
+    small.store.add(*(column[used : max(args.small, used)] for column in data))
+    q, p = small.q, small.dynamics.p
+    print(f"|D| = {len(small.store)} vs {len(large.store)}, q = {q}, p = {p}, |C| = {args.collection_size}", flush=True)
 
-    timings: dict[str, list[dict[str, float]]] = {"small": [], "large": []}
-    for repeat in range(args.repeats):
-        block = tuple(column[args.large + repeat * m : args.large + (repeat + 1) * m] for column in data)
+    blocks = [tuple(column[args.large + i * M : args.large + (i + 1) * M] for column in data) for i in range(args.repeats + 1)]
+    flops = counted_flops(small, blocks[-1])
+    rate = gemm_rate(args.collection_size, q, p, repeats=5)
+    floor = flops / rate
+    cpu: dict[str, list[float]] = {"small": [], "large": []}
+    phases: dict[str, list[dict[str, float]]] = {"small": [], "large": []}
+    for block in blocks[: args.repeats]:
         for name, agent in (("small", small), ("large", large)):
-            timings[name].append(time_iteration(agent, block))
-
+            seconds, by_phase = timed_iteration(agent, block)
+            cpu[name].append(seconds)
+            phases[name].append(by_phase)
     rows = []
-    for phase in (*PHASES, "total"):
-        medians = []
-        for name in ("small", "large"):
-            values = [sum(t.values()) if phase == "total" else t.get(phase, 0.0) for t in timings[name]]
-            medians.append(statistics.median(values))
-        rows.append([phase, f"{medians[0]:.4f}", f"{medians[1]:.4f}", f"{medians[1] / max(medians[0], 1e-9):.2f}"])
+    for phase in PHASES:
+        medians = [statistics.median(t.get(phase, 0.0) for t in phases[name]) for name in ("small", "large")]
+        rows.append([f"{phase} (wall)", f"{medians[0]:.3f}", f"{medians[1]:.3f}", f"{medians[1] / max(medians[0], 1e-9):.2f}"])
+    totals = [statistics.median(cpu[name]) for name in ("small", "large")]
+    rows.append(["**iteration (thread CPU)**", f"{totals[0]:.3f}", f"{totals[1]:.3f}", f"{totals[1] / totals[0]:.2f}"])
     header = ["phase", f"s at \\|D\\|={len(small.store)}", f"s at \\|D\\|={len(large.store)}", "ratio"]
-    table = markdown_table(header, rows)
     mp_seconds = matching_pursuit_seconds(args.repeats)
     text = (
-        f"# Seconds per iteration against |D|\n\nCommand: `{command_line()}` (1 torch thread, median of "
-        f"{args.repeats} alternated repeats; Pendulum-v1 config, m = {m}, q = {small.n_features} features, "
-        f"p = {small.policy.phi.width}).\n\n{table}\n\n"
+        f"# Seconds per iteration: against the FLOP floor and against |D|\n\nCommand: `{command_line()}` "
+        f"(1 torch thread, median of {args.repeats} alternated repeats; Pendulum-v1 config, m = {M}, "
+        f"q = {q} features, p = {p}, |C| = {args.collection_size}, "
+        f"K = {small.policy.candidates.shape[0]}, {small.evaluation_config.rounds} rounds).\n\n"
+        f"**FLOP floor**: one iteration does {flops / 1e9:.1f} GFLOP of matrix products "
+        f"(torch.utils.flop_counter); at this machine's float32 GEMM rate, measured in the same run on an "
+        f"({args.collection_size}, {q}) x ({q}, {p}) product ({rate / 1e9:.1f} GFLOP/s per thread), that is "
+        f"a floor of **{floor:.2f} s**. The iteration took **{totals[0]:.2f} s** of thread CPU time at "
+        f"|D| = {len(small.store)}: **{totals[0] / floor:.2f}x its floor**.\n\n"
+        f"{markdown_table(header, rows)}\n\n"
         f"Matching pursuit, 2,000-point subsample x 1,000 candidates x p = 316, 50 picks: {mp_seconds:.3f} s.\n"
     )
     print(text)
