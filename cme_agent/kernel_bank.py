@@ -38,6 +38,8 @@ def gaussian_kernel(x: torch.Tensor, centres: torch.Tensor, inv_two_sq_bandwidth
     points = torch.cat([x, (x * x).sum(1, keepdim=True)], dim=1)
     weights = torch.cat([2 * a[:, None] * centres, -a[:, None]], dim=1)
     exponent = torch.addmm(-a * (centres * centres).sum(1), points, weights.T)
+    if torch.is_grad_enabled() and exponent.requires_grad:  # the action refinement differentiates through psi
+        return torch.nn.functional.threshold(exponent.clamp(CUTOFF_EXPONENT, 0.0).exp(), _CUTOFF_VALUE, 0.0)
     return torch.nn.functional.threshold_(exponent.clamp_(CUTOFF_EXPONENT, 0.0).exp_(), _CUTOFF_VALUE, 0.0)
 
 

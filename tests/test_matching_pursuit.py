@@ -70,3 +70,10 @@ def test_fast_update_matches_plain_matching_pursuit():
         remaining -= atoms[:, j : j + 1] @ (atoms[:, j] @ remaining / (atoms[:, j] ** 2).sum()).unsqueeze(0)
     assert sorted(set(chosen)) == result.indices.tolist()
     assert float((remaining**2).sum()) == pytest.approx(result.energy_after, rel=1e-8)
+
+
+def test_a_negligible_atom_gets_no_infinite_weight():
+    """Found by hypothesis: a lone atom of 1.2e-38 once got the weight 1e38 / 1e-76 = inf."""
+    atoms = torch.tensor([[1.1754944e-38], [0.0], [0.0], [0.0], [0.0]])
+    result = matching_pursuit(atoms, torch.randn(5, 1, generator=torch.Generator().manual_seed(0)), 0.25, max_atoms=10)
+    assert len(result.indices) == 0 and torch.isfinite(result.weights).all()

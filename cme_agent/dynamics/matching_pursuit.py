@@ -48,7 +48,10 @@ def matching_pursuit(
     dtype = atoms.dtype
     G, R = atoms.double(), residual.double()
     norms = (G * G).sum(0)
-    usable = norms > 1e-12 * norms.max().clamp_min(1e-300)
+    # negligible atoms are never picked: relative to the largest, and absolutely, where 1 / ||G_j||^2
+    # would overflow the weights' dtype (sqrt of its smallest normal number, ~1e-19 for float32)
+    floor = max(float(norms.max()) * 1e-12, torch.finfo(dtype).tiny ** 0.5)
+    usable = norms > floor
     C = G.T @ R
     energy_before = float((R * R).sum())
     energy = energy_before
