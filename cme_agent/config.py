@@ -80,7 +80,9 @@ class FeatureSelectionConfig:
         current residual energy
     :param max_features: cap on the features added per iteration
     :param max_total_features: budget on q: once reached no feature is added, so the cost of an
-        iteration stops growing altogether (None: no budget)
+        iteration stops growing altogether (None or ``inf``: no budget; in a preset, Hydra
+        config or :func:`cme_agent.presets.merge_settings`, where None means 'not given',
+        write ``inf``)
     :param subsample_size: size of the random subsample of D the residual is measured on
     :param theta: step theta_k in [0, 1] applied to the new weights, B_k = (B_{k-1}, theta B_new)
     :param orthogonal: refit the weights of the picked atoms jointly by least squares
@@ -90,7 +92,7 @@ class FeatureSelectionConfig:
     bandwidths: tuple[float, ...] = (0.15, 0.3, 0.6)
     threshold: float = 0.002
     max_features: int = 80
-    max_total_features: int | None = 2000
+    max_total_features: int | float | None = 2000
     subsample_size: int = 2000
     theta: float = 1.0
     orthogonal: bool = False
@@ -102,7 +104,7 @@ class FeatureSelectionConfig:
             check_positive("feature_selection.bandwidths", bandwidth)
         check_unit_interval("feature_selection.threshold", self.threshold, open_low=True, open_high=True)
         check_positive_int("feature_selection.max_features", self.max_features)
-        if self.max_total_features is not None:
+        if self.max_total_features is not None and self.max_total_features != math.inf:
             check_positive_int("feature_selection.max_total_features", self.max_total_features)
         check_positive_int("feature_selection.subsample_size", self.subsample_size)
         check_unit_interval("feature_selection.theta", self.theta, open_low=True)

@@ -63,3 +63,13 @@ def test_phi_settings_are_range_checked():
         StateFeatureConfig(n_fourier=0)
     with pytest.raises(ValueError, match=r"observation\.quantile=0\.5 is invalid"):
         ObservationConfig(quantile=0.5)
+
+
+def test_no_feature_budget_can_be_written_as_inf():
+    """None means 'not given' in presets and Hydra configs, so 'no budget on q' is also spelled inf."""
+    assert build_config(
+        FeatureSelectionConfig, {"max_total_features": float("inf")}, "feature_selection"
+    ).max_total_features == float("inf")
+    assert FeatureSelectionConfig(max_total_features=None).max_total_features is None
+    with pytest.raises(ValueError, match=r"feature_selection\.max_total_features=2\.5 is invalid"):
+        FeatureSelectionConfig(max_total_features=2.5)

@@ -1,5 +1,6 @@
 """The preset registry: one source of truth for per-env settings, merged under the user's."""
 
+import dataclasses
 from pathlib import Path
 
 import gymnasium as gym
@@ -10,6 +11,8 @@ import cme_agent  # noqa: F401  (registers Quadcopter-v0 and ToyChain-v0)
 from cme_agent.config import ObservationConfig, StateFeatureConfig, build_config
 from cme_agent.encoding import ObservationEncoder
 from cme_agent.presets import (
+    GROUPS,
+    POLICY_GROUPS,
     apply_preset,
     check_settings,
     merge_settings,
@@ -151,3 +154,18 @@ def test_register_preset_checks_and_replaces(monkeypatch):
     with pytest.raises(ValueError, match=r"unknown policy_kwargs key\(s\) \['ph'\]"):
         register_preset("MyEnv-v0", {"policy_kwargs": {"ph": {}}})
     assert preset_for("MyEnv-v0") == {"gamma": 0.9, "evaluation": {"rounds": 2}}
+
+
+def test_the_proposed_hydra_agent_config_lists_every_setting_and_reads_the_presets():
+    """conf/agent/cme.yaml.proposed: every config field as null, so a composed config is the preset plus overrides."""
+    proposed = yaml.safe_load((ROOT / "conf" / "agent" / "cme.yaml.proposed").read_text())
+    for group, cls in GROUPS.items():
+        assert set(proposed[group]) == {f.name for f in dataclasses.fields(cls)}, group
+    for group, cls in POLICY_GROUPS.items():
+        assert set(proposed["policy_kwargs"][group]) == {f.name for f in dataclasses.fields(cls)}, group
+    user = {key: value for key, value in proposed.items() if key not in ("_target_", "policy")}
+    assert all(value is None for _, value in _leaves(user))
+    user["evaluation"]["rounds"] = 3  # a command-line override
+    settings, _ = apply_preset("Pendulum-v1", user)
+    check_settings(settings)
+    assert settings["omega"] == 0.2 and settings["evaluation"] == {"collection_size": 8000, "rounds": 3}
