@@ -21,6 +21,9 @@ from cme_agent.config import ObservationConfig, _as_tuple
 PYTHON_BOUNDS_HINT = 'policy_kwargs={"observation": {"low": [...], "high": [...]}}'
 """How a user gives the normalisation box, shown wherever bounds are refused or missing."""
 
+LOGGED_DIMS = 8
+"""Estimated dims whose box :meth:`ObservationEncoder.fit` spells out in its log line."""
+
 MAX_FIT_ROWS = 100_000
 """Observations the quantiles of :meth:`ObservationEncoder.fit` are taken over (evenly spaced rows)."""
 
@@ -88,8 +91,8 @@ class ObservationEncoder(torch.nn.Module):
         Per dim: the quantiles q and 1 - q (``config.quantile``) widened by ``config.margin``
         of their range on each side, clipped to the space's bound where that side is finite;
         a constant dim gets the half-range ``1e-3 max(1, |value|)``. At most 100,000 evenly
-        spaced rows are used. A second call is refused:
-        phi's centres and psi's kernels are placed in the frozen coordinates.
+        spaced rows are used. A second call is refused: phi's centres and psi's kernels are
+        placed in the frozen coordinates.
 
         :param obs: (N, obs_dim) observations in env units (N >= 1), e.g. the states and
             successors of the random phase
@@ -122,7 +125,8 @@ class ObservationEncoder(torch.nn.Module):
         self.half_range[index] = half_range.to(self.half_range)
         self.fitted.fill_(True)
         self._ready = True
-        box = ", ".join(f"{d}: [{c - h:.4g}, {c + h:.4g}]" for d, c, h in zip(self.fit_dims, center, half_range, strict=True))
+        boxes = [f"{d}: [{c - h:.4g}, {c + h:.4g}]" for d, c, h in zip(self.fit_dims, center, half_range, strict=True)]
+        box = ", ".join(boxes[:LOGGED_DIMS]) + (f" and {len(boxes) - LOGGED_DIMS} more" if len(boxes) > LOGGED_DIMS else "")
         return (
             f"observation box estimated from {obs.shape[0]} observations (quantiles {q:g}..{1 - q:g}, "
             f"margin {self.config.margin:g}) and frozen for dims {box}; to give it yourself pass {PYTHON_BOUNDS_HINT}"

@@ -86,7 +86,7 @@ def bellman_residual_weights(
     n, p = residual_map.shape
     ridge = _ridge(torch.linalg.vector_norm(residual_map).square(), p, l2)
     if n >= p:
-        weights = _ridge_solve(residual_map.T @ residual_map, residual_map.T @ rewards, ridge)
+        weights = _ridge_solve(residual_map.T @ residual_map, residual_map.T @ rewards.to(residual_map.dtype), ridge)
     else:
         weights = _transposed_product(residual_map, _ridge_solve(residual_map @ residual_map.T, rewards, ridge))
     return weights.to(phi.dtype)
@@ -137,9 +137,9 @@ def bellman_residual_descent(
     """
     residual_map = phi - gamma * next_phi
     n, p = residual_map.shape
-    gram = (residual_map.T @ residual_map).double() / n
+    gram = (residual_map.T @ residual_map).double().div_(n)
     gram.diagonal().add_(_ridge(torch.linalg.vector_norm(residual_map).square(), p, l2) / n)
-    target = (residual_map.T @ rewards).double() / n
+    target = (residual_map.T @ rewards.to(residual_map.dtype)).double().div_(n)
     lipschitz = float(torch.linalg.eigvalsh(gram)[-1])
     w = initial.double().clone()
     previous = w.clone()

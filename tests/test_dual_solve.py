@@ -96,3 +96,11 @@ def test_gradient_descent_with_lstd_is_refused():
     with pytest.raises(ValueError, match=r"evaluation.solver='gd' is invalid.*lstd"):
         build_config(EvaluationConfig, {"solver": "gd", "method": "lstd"}, "evaluation")
     EvaluationConfig(solver="gd")  # the Bellman residual by gradient descent is fine
+
+
+def test_float32_rewards_with_float64_features_are_accepted():
+    phi, next_phi, rewards = _problem(100, 1, 5)
+    for solver in (bellman_residual_weights, lstd_weights):
+        assert solver(phi, next_phi, rewards.float(), 0.9, 1e-4).dtype == torch.float64
+    initial = torch.zeros(phi.shape[1], dtype=torch.float64)
+    assert torch.isfinite(bellman_residual_descent(phi, next_phi, rewards.float(), 0.9, 1e-4, initial, 5)).all()

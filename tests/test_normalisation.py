@@ -107,3 +107,9 @@ def test_fit_refuses_bad_data():
     with pytest.raises(ValueError, match="non-finite"):
         encoder.fit(torch.full((4, 5), float("nan")))
     assert encoder.needs_fit
+
+
+def test_the_log_line_of_a_wide_observation_stays_one_short_line():
+    encoder = ObservationEncoder(spaces.Box(-np.inf, np.inf, (40,), np.float32), ObservationConfig())
+    message = encoder.fit(torch.randn(100, 40))
+    assert "\n" not in message and "7: [" in message and "8: [" not in message and "and 32 more" in message
