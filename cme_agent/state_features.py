@@ -172,15 +172,22 @@ def default_resolution(grid_dim: int, max_width: int) -> int | None:
     return points if points >= MIN_GRID_RESOLUTION else None
 
 
-def physical_memory_bytes() -> int | None:
-    """Physical memory of this machine (``os.sysconf``), or None where it cannot be read."""
+def physical_memory_bytes(device: torch.device | str | None = None) -> int | None:
+    """Memory the evaluation can use: a CUDA device's total memory, else this machine's
+    physical memory (``os.sysconf``); None where it cannot be read.
+
+    :param device: where the evaluation runs (None: the CPU)
+    """
+    device = torch.device("cpu" if device is None else device)
+    if device.type == "cuda":
+        return int(torch.cuda.get_device_properties(device).total_memory)
     try:
         return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     except (ValueError, OSError, AttributeError):
         return None
 
 
-def check_phi_memory(width: int, collection_size: int, source: str) -> None:
+def check_phi_memory(width: int, collection_size: int, source: str, device: torch.device | str | None = None) -> None:
     """Warn about a wide phi, and refuse one whose evaluation cannot fit in memory.
 
     Above :data:`WARN_WIDTH` features a ``UserWarning`` names p and the memory of the
@@ -190,16 +197,18 @@ def check_phi_memory(width: int, collection_size: int, source: str) -> None:
     :param width: p, the width of phi
     :param collection_size: |C| the evaluation will use
     :param source: the setting that made this phi, for the messages (``"phi.resolution=[11]"``)
+    :param device: where the evaluation runs (None: the CPU)
     """
     needed = evaluation_memory_bytes(width, collection_size)
     detail = (
         f"{source} makes phi {width:,} features wide: the evaluation holds |C| x p = {collection_size:,} x {width:,} "
         f"float32 matrices and a {min(width, collection_size):,}^2 float64 system, {needed / 2**30:.2f} GiB"
     )
-    total = physical_memory_bytes()
+    total = physical_memory_bytes(device)
     if total is not None and needed > MAX_MEMORY_FRACTION * total:
+        where = "this machine's" if device is None or torch.device(device).type == "cpu" else f"{device}'s"
         raise ValueError(
-            f"{detail}, more than {MAX_MEMORY_FRACTION:.0%} of this machine's {total / 2**30:.1f} GiB: "
+            f"{detail}, more than {MAX_MEMORY_FRACTION:.0%} of {where} {total / 2**30:.1f} GiB: "
             f"use fewer features (the default phi keeps p <= phi.max_width=1000) or a smaller evaluation.collection_size"
         )
     if width > WARN_WIDTH:
@@ -210,6 +219,7 @@ def make_state_features(
     phi: StateFeatureConfig | nn.Module | Callable[[torch.Tensor], torch.Tensor],
     encoder: ObservationEncoder,
     evaluation: EvaluationConfig | None = None,
+    device: torch.device | str | None = None,
 ) -> nn.Module:
     """Build phi from its config, or wrap a user-supplied map, and check its memory.
 
@@ -222,6 +232,7 @@ def make_state_features(
     :param phi: a :class:`StateFeatureConfig`, or a user map obs (N, obs_dim) -> (N, p0)
     :param encoder: the observation encoder
     :param evaluation: the evaluation settings, for |C| in the memory check (None: defaults)
+    :param device: where the evaluation will run, for the memory check (None: the CPU)
     :return: a module with a ``width`` attribute (p), obs (N, obs_dim) -> (N, p)
     """
     if not isinstance(phi, StateFeatureConfig):
@@ -244,5 +255,5 @@ def make_state_features(
             module = RandomFourierFeatures(encoder, n_fourier, bandwidth)
             source = f"phi.n_fourier={n_fourier}"
     width = int(module.width)
-    check_phi_memory(width, collection_size_for(width, evaluation or EvaluationConfig()), source)
+    check_phi_memory(width, collection_size_for(width, evaluation or EvaluationConfig()), source, device)
     return module

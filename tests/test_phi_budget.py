@@ -73,7 +73,7 @@ def test_a_wide_explicit_phi_warns_with_width_and_memory():
 
 def test_a_phi_that_cannot_fit_in_memory_is_refused_with_the_number(monkeypatch):
     assert physical_memory_bytes() > 0  # read from os.sysconf on this machine
-    monkeypatch.setattr(state_features, "physical_memory_bytes", lambda: 16 * 2**30)
+    monkeypatch.setattr(state_features, "physical_memory_bytes", lambda device=None: 16 * 2**30)
     with pytest.raises(ValueError, match=r"1,771,562 features wide.*GiB, more than 50% of this machine's 16.0 GiB"):
         make_state_features(StateFeatureConfig(resolution=(11,)), _encoder(6))
     make_state_features(StateFeatureConfig(resolution=(11,)), _encoder(2))  # 122 features: fine
@@ -82,3 +82,13 @@ def test_a_phi_that_cannot_fit_in_memory_is_refused_with_the_number(monkeypatch)
 def test_memory_estimate_counts_the_matrices_and_the_smaller_system():
     assert evaluation_memory_bytes(1000, 10_000) == 12 * 10_000 * 1000 + 20 * 1000**2
     assert evaluation_memory_bytes(3000, 2000) == 12 * 2000 * 3000 + 20 * 2000**2  # dual: n x n
+
+
+def test_on_a_cuda_device_the_memory_check_reads_the_devices_memory(monkeypatch):
+    class Properties:
+        total_memory = 8 * 2**30
+
+    monkeypatch.setattr(torch.cuda, "get_device_properties", lambda device: Properties())
+    assert physical_memory_bytes("cuda:0") == 8 * 2**30
+    with pytest.raises(ValueError, match=r"more than 50% of cuda:0's 8.0 GiB"):
+        make_state_features(StateFeatureConfig(resolution=(11,)), _encoder(5), device="cuda:0")
