@@ -70,6 +70,25 @@ def check_list(key: str, value: Any) -> None:
 
 
 @dataclass(frozen=True)
+class AgentConfig:
+    """The top-level settings of the policy iteration (the constructor arguments outside the groups).
+
+    :param gamma: discount factor in (0, 1)
+    :param omega: step of the Q smoothing Q_k = (1 - omega) Q_{k-1} + omega Q^_k, in (0, 1]
+    :param steps_per_iteration: m, env steps collected per iteration (all envs together)
+    """
+
+    gamma: float = 0.98
+    omega: float = 0.5
+    steps_per_iteration: int = 200
+
+    def __post_init__(self) -> None:
+        check_unit_interval("gamma", self.gamma, open_low=True, open_high=True)
+        check_unit_interval("omega", self.omega, open_low=True)
+        check_positive_int("steps_per_iteration", self.steps_per_iteration)
+
+
+@dataclass(frozen=True)
 class FeatureSelectionConfig:
     """Matching pursuit over a data-dependent kernel dictionary (paper eq. (5), section 2.2).
 

@@ -12,11 +12,13 @@ presets, so there is no second copy.
 from __future__ import annotations
 
 import copy
+import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
 from cme_agent.config import (
     ActionSearchConfig,
+    AgentConfig,
     EvaluationConfig,
     ExplorationConfig,
     FeatureSelectionConfig,
@@ -24,8 +26,6 @@ from cme_agent.config import (
     ObservationConfig,
     StateFeatureConfig,
     build_config,
-    check_positive_int,
-    check_unit_interval,
 )
 
 GROUPS: dict[str, type] = {
@@ -43,7 +43,8 @@ POLICY_GROUPS: dict[str, type] = {
 }
 """Config groups of ``policy_kwargs`` and their dataclasses."""
 
-TOP_LEVEL_KEYS = ("gamma", "omega", "steps_per_iteration")
+TOP_LEVEL_KEYS = tuple(field.name for field in dataclasses.fields(AgentConfig))
+"""Constructor arguments outside the groups (:class:`~cme_agent.config.AgentConfig`)."""
 
 _PRESETS: dict[str, dict[str, Any]] = {
     # obs: cos, sin, angular velocity in [-8, 8]
@@ -157,12 +158,7 @@ def check_settings(settings: Mapping[str, Any], source: str = "settings") -> Non
     if unknown:
         raise ValueError(f"{source} has unknown key(s) {unknown}; known keys: {sorted(known)}")
     given = _drop_none(settings)
-    if "gamma" in given:
-        check_unit_interval("gamma", given["gamma"], open_low=True, open_high=True)
-    if "omega" in given:
-        check_unit_interval("omega", given["omega"], open_low=True)
-    if "steps_per_iteration" in given:
-        check_positive_int("steps_per_iteration", given["steps_per_iteration"])
+    build_config(AgentConfig, {key: given[key] for key in TOP_LEVEL_KEYS if key in given}, "agent")
     for group, cls in GROUPS.items():
         build_config(cls, given.get(group), group)
     policy_kwargs = given.get("policy_kwargs", {})
