@@ -238,7 +238,12 @@ def apply_preset(env_id: str | None, user: Mapping[str, Any]) -> tuple[dict[str,
     preset = preset_for(env_id)
     if preset is None:
         return _drop_none(user), None
-    overridden = sorted(_leaf_keys(_drop_none(user)) & _leaf_keys(preset))
+    preset_keys = _leaf_keys(preset)
+    overridden = sorted(
+        key
+        for key in _leaf_keys(_drop_none(user))
+        if key in preset_keys or any(name.startswith(f"{key}.") for name in preset_keys)  # a whole group replaced
+    )
     message = f"Applied the tuned preset of {env_id!r} (cme_agent.presets)"
     if overridden:
         message += f"; your arguments override {', '.join(overridden)}"

@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 import cme_agent  # noqa: F401  (registers Quadcopter-v0 and ToyChain-v0)
-from cme_agent.config import ObservationConfig, StateFeatureConfig, build_config
+from cme_agent.config import EvaluationConfig, ObservationConfig, StateFeatureConfig, build_config
 from cme_agent.encoding import ObservationEncoder
 from cme_agent.presets import (
     GROUPS,
@@ -131,6 +131,8 @@ def test_apply_preset_names_the_preset_and_the_overrides():
     settings, message = apply_preset("Pendulum-v1", {"omega": 0.5, "evaluation": {"rounds": 2}})
     assert settings["omega"] == 0.5 and settings["evaluation"] == {"collection_size": 8000, "rounds": 2}
     assert "'Pendulum-v1'" in message and "override omega" in message and "rounds" not in message
+    _, message = apply_preset("Pendulum-v1", {"evaluation": EvaluationConfig(rounds=2)})
+    assert message.endswith("override evaluation")  # a whole group replaced by a config instance
     settings, message = apply_preset(None, {"gamma": 0.9, "omega": None})
     assert settings == {"gamma": 0.9} and message is None
 
