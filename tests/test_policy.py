@@ -114,7 +114,7 @@ def test_infinite_observation_bounds_are_estimated_from_the_first_data():
     from gymnasium.envs.classic_control import CartPoleEnv
 
     unknown = gym.wrappers.TimeLimit(CartPoleEnv(), 500)  # no env id: no preset gives its velocity bounds
-    encoder = CMEPolicyIteration("CMEPolicy", unknown).policy.obs_encoder
+    encoder = CMEPolicyIteration("CMEPolicy", unknown).dynamics.obs_encoder
     assert encoder.needs_fit and encoder.fit_dims == [1, 3]
     with pytest.raises(RuntimeError, match=r'dims \[1, 3\] have no usable bounds.*policy_kwargs=\{"observation"'):
         encoder.normalize(torch.zeros(1, 4))
