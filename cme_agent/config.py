@@ -61,6 +61,33 @@ def check_choice(key: str, value: Any, choices: Sequence[str]) -> None:
     check(key, value, value in choices, f"one of {list(choices)}")
 
 
+def check_list(key: str, value: Any) -> None:
+    """Check that ``value`` is a list or tuple, naming the key when a scalar was given instead
+    (``feature_selection.bandwidths=-0.3`` rather than ``[-0.3]``)."""
+    if not isinstance(value, (list, tuple)):
+        hint = f" (write [{value!r}] for a single value)" if isinstance(value, (int, float, str)) else ""
+        raise ValueError(f"{key}={value!r} is invalid: must be a list{hint}")
+
+
+@dataclass(frozen=True)
+class AgentConfig:
+    """The top-level settings of the policy iteration (the constructor arguments outside the groups).
+
+    :param gamma: discount factor in (0, 1)
+    :param omega: step of the Q smoothing Q_k = (1 - omega) Q_{k-1} + omega Q^_k, in (0, 1]
+    :param steps_per_iteration: m, env steps collected per iteration (all envs together)
+    """
+
+    gamma: float = 0.98
+    omega: float = 0.5
+    steps_per_iteration: int = 200
+
+    def __post_init__(self) -> None:
+        check_unit_interval("gamma", self.gamma, open_low=True, open_high=True)
+        check_unit_interval("omega", self.omega, open_low=True)
+        check_positive_int("steps_per_iteration", self.steps_per_iteration)
+
+
 @dataclass(frozen=True)
 class FeatureSelectionConfig:
     """Matching pursuit over a data-dependent kernel dictionary (paper eq. (5), section 2.2).
@@ -72,7 +99,9 @@ class FeatureSelectionConfig:
         current residual energy
     :param max_features: cap on the features added per iteration
     :param max_total_features: budget on q: once reached no feature is added, so the cost of an
-        iteration stops growing altogether (None: no budget)
+        iteration stops growing altogether (None or ``inf``: no budget; in a preset, Hydra
+        config or :func:`cme_agent.presets.merge_settings`, where None means 'not given',
+        write ``inf``)
     :param subsample_size: size of the random subsample of D the residual is measured on
     :param theta: step theta_k in [0, 1] applied to the new weights, B_k = (B_{k-1}, theta B_new)
     :param orthogonal: refit the weights of the picked atoms jointly by least squares
@@ -82,18 +111,19 @@ class FeatureSelectionConfig:
     bandwidths: tuple[float, ...] = (0.15, 0.3, 0.6)
     threshold: float = 0.002
     max_features: int = 80
-    max_total_features: int | None = 2000
+    max_total_features: int | float | None = 2000
     subsample_size: int = 2000
     theta: float = 1.0
     orthogonal: bool = False
 
     def __post_init__(self) -> None:
+        check_list("feature_selection.bandwidths", self.bandwidths)
         check("feature_selection.bandwidths", self.bandwidths, len(self.bandwidths) > 0, "a non-empty list")
         for bandwidth in self.bandwidths:
             check_positive("feature_selection.bandwidths", bandwidth)
         check_unit_interval("feature_selection.threshold", self.threshold, open_low=True, open_high=True)
         check_positive_int("feature_selection.max_features", self.max_features)
-        if self.max_total_features is not None:
+        if self.max_total_features is not None and self.max_total_features != math.inf:
             check_positive_int("feature_selection.max_total_features", self.max_total_features)
         check_positive_int("feature_selection.subsample_size", self.subsample_size)
         check_unit_interval("feature_selection.theta", self.theta, open_low=True)
@@ -136,14 +166,24 @@ class ModelUpdateConfig:
         check_positive_int("model_update.holdout_size", self.holdout_size)
 
 
+MIN_COLLECTION_SIZE = 2000
+"""Smallest default |C|: below it the uniform and data halves of C are thin."""
+COLLECTION_PER_FEATURE = 10
+"""Default |C| per feature of phi: a well-determined evaluation (|C| >= 10 p)."""
+MAX_COLLECTION_SIZE = 20_000
+"""Cap of the default |C|: past it the evaluation is solved in its dual form instead."""
+
+
 @dataclass(frozen=True)
 class EvaluationConfig:
-    """Policy evaluation on a fixed-size collection C of states (paper eq. (7)).
+    """Policy evaluation on a collection C of states (paper eq. (7)).
 
     :param method: ``"bellman_residual"`` (eq. (7)) or ``"lstd"`` (the fixed point)
-    :param solver: ``"lstsq"`` (regularised least squares, exact) or ``"gd"`` (gradient
-        descent warm-started from the previous weights)
-    :param collection_size: number of states in C
+    :param solver: ``"lstsq"`` (regularised least squares, exact; in its dual form when
+        |C| < p) or ``"gd"`` (gradient descent on eq. (7) warm-started from the previous
+        weights; Bellman residual only)
+    :param collection_size: number of states in C (None: follows the width p of phi, see
+        :func:`collection_size_for`)
     :param uniform_fraction: fraction of C drawn uniformly over the state box; the rest is
         drawn from the states in D
     :param l2: ridge coefficient, relative to the mean diagonal of the normal equations
@@ -153,7 +193,7 @@ class EvaluationConfig:
 
     method: str = "bellman_residual"
     solver: str = "lstsq"
-    collection_size: int = 2000
+    collection_size: int | None = None
     uniform_fraction: float = 0.5
     l2: float = 1e-4
     rounds: int = 5
@@ -162,11 +202,31 @@ class EvaluationConfig:
     def __post_init__(self) -> None:
         check_choice("evaluation.method", self.method, ("bellman_residual", "lstd"))
         check_choice("evaluation.solver", self.solver, ("lstsq", "gd"))
-        check_positive_int("evaluation.collection_size", self.collection_size)
+        check(
+            "evaluation.solver",
+            self.solver,
+            not (self.solver == "gd" and self.method == "lstd"),
+            'lstsq with method="lstd" (gradient descent minimises the Bellman residual of eq. (7) only)',
+        )
+        if self.collection_size is not None:
+            check_positive_int("evaluation.collection_size", self.collection_size)
         check_unit_interval("evaluation.uniform_fraction", self.uniform_fraction)
         check_positive("evaluation.l2", self.l2)
         check_positive_int("evaluation.rounds", self.rounds)
         check_positive_int("evaluation.gd_steps", self.gd_steps)
+
+
+def collection_size_for(width: int, config: EvaluationConfig) -> int:
+    """|C| for a phi of width p: the configured size, or by default
+    ``min(max(2,000, 10 p), 20,000)`` (at least 10 states per feature within the cap).
+
+    :param width: p, the width of phi (constant feature included)
+    :param config: the evaluation settings
+    :return: the number of states in C
+    """
+    if config.collection_size is not None:
+        return config.collection_size
+    return min(max(MIN_COLLECTION_SIZE, COLLECTION_PER_FEATURE * width), MAX_COLLECTION_SIZE)
 
 
 @dataclass(frozen=True)
@@ -206,29 +266,49 @@ class ExplorationConfig:
 class StateFeatureConfig:
     """The state feature map phi on which values are linear, V(s) = <w, phi(s)>.
 
-    :param kind: ``"rbf_grid"`` (Gaussian bumps on a grid over the normalised observation;
-        angles periodic) or ``"fourier"`` (random Fourier features, for higher dimensions)
+    :param kind: ``"auto"`` (an RBF grid where one of a useful resolution fits ``max_width``,
+        random Fourier features beyond; see :func:`cme_agent.state_features.make_state_features`),
+        ``"rbf_grid"`` (Gaussian bumps on a grid over the normalised observation; angles
+        periodic) or ``"fourier"`` (random Fourier features)
     :param resolution: grid points per grid dimension (one int for all, or one per
-        dimension; an angle given as (cos, sin) is one periodic dimension)
+        dimension; an angle given as (cos, sin) is one periodic dimension); None: the largest
+        up to 11 per dimension whose grid fits ``max_width``. Given, it also makes ``"auto"``
+        a grid.
+    :param max_width: budget on p, the width of phi (constant feature included), that the
+        defaults respect; explicit ``resolution`` or ``n_fourier`` may exceed it
     :param width: RBF width in grid spacings
-    :param n_fourier: number of random Fourier features
+    :param n_fourier: number of random Fourier features (None: ``max_width - 1``)
     :param bandwidth: length scale of the random Fourier features, in normalised units
+        (None: ``max(0.3, 0.1 obs_dim)``, wide enough for high-dimensional observations)
     """
 
-    kind: str = "rbf_grid"
-    resolution: tuple[int, ...] = (11,)
+    kind: str = "auto"
+    resolution: tuple[int, ...] | None = None
+    max_width: int = 1000
     width: float = 1.0
-    n_fourier: int = 500
-    bandwidth: float = 0.3
+    n_fourier: int | None = None
+    bandwidth: float | None = None
 
     def __post_init__(self) -> None:
-        check_choice("phi.kind", self.kind, ("rbf_grid", "fourier"))
-        check("phi.resolution", self.resolution, len(self.resolution) > 0, "a non-empty list")
-        for points in self.resolution:
-            check("phi.resolution", points, isinstance(points, int) and points >= 2, "integers >= 2")
+        check_choice("phi.kind", self.kind, ("auto", "rbf_grid", "fourier"))
+        if isinstance(self.resolution, int) and not isinstance(self.resolution, bool):
+            object.__setattr__(self, "resolution", (self.resolution,))  # one value for all dims
+        if self.resolution is not None:
+            check_list("phi.resolution", self.resolution)
+            check("phi.resolution", self.resolution, len(self.resolution) > 0, "a non-empty list")
+            for points in self.resolution:
+                check("phi.resolution", points, isinstance(points, int) and points >= 2, "integers >= 2")
+        check(
+            "phi.max_width",
+            self.max_width,
+            isinstance(self.max_width, int) and not isinstance(self.max_width, bool) and self.max_width >= 2,
+            "an integer >= 2",
+        )
         check_positive("phi.width", self.width)
-        check_positive_int("phi.n_fourier", self.n_fourier)
-        check_positive("phi.bandwidth", self.bandwidth)
+        if self.n_fourier is not None:
+            check_positive_int("phi.n_fourier", self.n_fourier)
+        if self.bandwidth is not None:
+            check_positive("phi.bandwidth", self.bandwidth)
 
 
 @dataclass(frozen=True)
@@ -271,30 +351,55 @@ class ActionSearchConfig:
 class ObservationConfig:
     """How observations are normalised to [-1, 1] per dimension.
 
-    :param low: lower bound per dimension (default: the observation space's, when finite)
-    :param high: upper bound per dimension (default: the observation space's, when finite)
+    Dims whose bounds are neither given here nor usable in the space (infinite, or a
+    half-range above ``max_half_range``) get a box estimated from the first data: the
+    ``quantile`` and ``1 - quantile`` quantiles widened by ``margin`` of their range on each
+    side, then frozen (:meth:`cme_agent.encoding.ObservationEncoder.fit`).
+
+    :param low: lower bound per dimension, env units (default: the observation space's, when
+        usable; else estimated from data)
+    :param high: upper bound per dimension, env units (default: as ``low``)
     :param angle_pairs: index pairs (i, j) of observation dims holding (cos, sin) of an angle;
         phi treats each as one periodic dimension
+    :param quantile: lower quantile of the estimated box, in (0, 0.5)
+    :param margin: widening of the estimated box on each side, as a fraction of its range
+    :param max_half_range: space bounds with a wider half-range (env units) are treated as
+        unknown
     """
 
     low: tuple[float, ...] | None = None
     high: tuple[float, ...] | None = None
     angle_pairs: tuple[tuple[int, int], ...] = field(default_factory=tuple)
+    quantile: float = 0.01
+    margin: float = 0.1
+    max_half_range: float = 1e3
 
     def __post_init__(self) -> None:
+        for name, bound in (("observation.low", self.low), ("observation.high", self.high)):
+            if bound is not None:
+                check_list(name, bound)
+                for value in bound:
+                    check(name, bound, _is_number(value), "a list of finite numbers")
         if self.low is not None and self.high is not None:
             check("observation.low", self.low, len(self.low) == len(self.high), "as long as observation.high")
             for lo, hi in zip(self.low, self.high, strict=True):
-                check(
-                    "observation.high",
-                    self.high,
-                    _is_number(lo) and _is_number(hi) and hi > lo,
-                    "finite and > observation.low",
-                )
+                check("observation.high", self.high, hi > lo, "> observation.low in every dim")
+        check_list("observation.angle_pairs", self.angle_pairs)
         for pair in self.angle_pairs:
             check(
-                "observation.angle_pairs", self.angle_pairs, len(pair) == 2 and pair[0] != pair[1], "pairs of distinct indices"
+                "observation.angle_pairs",
+                self.angle_pairs,
+                isinstance(pair, (list, tuple)) and len(pair) == 2 and pair[0] != pair[1],
+                "pairs of distinct indices",
             )
+        check(
+            "observation.quantile",
+            self.quantile,
+            _is_number(self.quantile) and 0 <= self.quantile < 0.5,
+            "in [0, 0.5)",
+        )
+        check_non_negative("observation.margin", self.margin)
+        check_positive("observation.max_half_range", self.max_half_range)
 
 
 def _as_tuple(value: Any) -> Any:
@@ -323,10 +428,7 @@ def build_config(cls: type[ConfigT], value: ConfigT | Mapping[str, Any] | None, 
     unknown = sorted(set(value.keys()) - names)
     if unknown:
         raise ValueError(f"{group} has unknown key(s) {unknown}; known keys: {sorted(names)}")
-    values = {key: _as_tuple(item) for key, item in value.items()}
-    if cls is StateFeatureConfig and isinstance(values.get("resolution"), int):
-        values["resolution"] = (values["resolution"],)
-    return cls(**values)
+    return cls(**{key: _as_tuple(item) for key, item in value.items()})
 
 
 def as_dict(config: Any) -> dict[str, Any]:

@@ -1,46 +1,59 @@
 """Normalised encodings of observations and actions, shared by phi, psi and the C sampler.
 
-Every observation dimension is mapped affinely to [-1, 1] from configured or space bounds;
-an angle given as a (cos, sin) pair stays as is for psi, and becomes one periodic coordinate
-(angle / pi in [-1, 1)) for the grid of phi. Box actions are mapped to [-1, 1], Discrete
-actions to one-hot vectors.
+Every observation dimension is mapped affinely to [-1, 1] from configured or space bounds,
+or, where neither is usable (infinite or absurdly wide bounds), from a box estimated once from
+the first data and then frozen; an angle given as a (cos, sin) pair stays as is for psi, and
+becomes one periodic coordinate (angle / pi in [-1, 1)) for the grid of phi. Box actions are
+mapped to [-1, 1], Discrete actions to one-hot vectors.
 """
 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import torch
 from gymnasium import spaces
 
-from cme_agent.config import ObservationConfig
+from cme_agent.config import ObservationConfig, _as_tuple
 
-KNOWN_OBSERVATIONS: dict[str, ObservationConfig] = {
-    "Pendulum-v1": ObservationConfig(angle_pairs=((0, 1),)),
-    "Acrobot-v1": ObservationConfig(angle_pairs=((0, 1), (2, 3))),
-    "CartPole-v1": ObservationConfig(low=(-2.4, -3.0, -0.21, -3.5), high=(2.4, 3.0, 0.21, 3.5)),
-}
-"""Facts about the observations of known envs (angle pairs; finite bounds where the space has
-none), used when ``policy_kwargs`` gives no ``observation``."""
+PYTHON_BOUNDS_HINT = 'policy_kwargs={"observation": {"low": [...], "high": [...]}}'
+"""How a user gives the normalisation box, shown wherever bounds are refused or missing."""
+
+LOGGED_DIMS = 8
+"""Estimated dims whose box :meth:`ObservationEncoder.fit` spells out in its log line."""
+
+MAX_FIT_ROWS = 100_000
+"""Observations the quantiles of :meth:`ObservationEncoder.fit` are taken over (evenly spaced rows)."""
 
 
 def _bound(values: tuple[float, ...] | None, default: np.ndarray, name: str) -> np.ndarray:
     bound = default.astype(np.float64) if values is None else np.asarray(values, dtype=np.float64)
     if bound.shape != default.shape:
-        raise ValueError(f"observation.{name} has {bound.size} values but the observation has {default.size} dims")
+        raise ValueError(
+            f"observation.{name} has {bound.size} values but the observation has {default.size} dims: "
+            f"give one per dim, {PYTHON_BOUNDS_HINT}"
+        )
     return bound
 
 
 class ObservationEncoder(torch.nn.Module):
     """Maps Box observations to normalised coordinates.
 
+    Bounds come from ``config.low/high`` where given, else from the space where usable
+    (finite, half-range at most ``config.max_half_range``). The remaining dims are estimated by
+    :meth:`fit` from the first data; until then :attr:`needs_fit` is True and normalising
+    raises. The box (``center``, ``half_range``) and the ``fitted`` flag are buffers, so a
+    fitted box is saved and loaded with the state dict.
+
     :param space: the observation space (a 1-D ``Box``)
-    :param config: bounds and angle pairs; bounds default to the space's where finite
+    :param config: bounds, angle pairs and how to estimate missing bounds
     """
 
     def __init__(self, space: spaces.Box, config: ObservationConfig) -> None:
         super().__init__()
+        self.config = config
         low = _bound(config.low, space.low, "low")
         high = _bound(config.high, space.high, "high")
         angle_dims = {dim for pair in config.angle_pairs for dim in pair}
@@ -48,16 +61,84 @@ class ObservationEncoder(torch.nn.Module):
             if not 0 <= dim < space.shape[0]:
                 raise ValueError(f"observation.angle_pairs names dim {dim}, but the observation has {space.shape[0]} dims")
             low[dim], high[dim] = -1.0, 1.0
-        infinite = [i for i in range(low.size) if not (np.isfinite(low[i]) and np.isfinite(high[i]))]
-        if infinite:
-            raise ValueError(
-                f"observation space {space} has infinite bounds in dims {infinite}: give the agent "
-                "finite observation.low / observation.high for normalisation"
-            )
+        self.space_low, self.space_high = low.copy(), high.copy()
+        unusable = ~(np.isfinite(low) & np.isfinite(high)) | ((high - low) / 2 > config.max_half_range)
+        self.fit_dims = [int(i) for i in np.flatnonzero(unusable)]
+        """Dims whose box is estimated from data by :meth:`fit`."""
+        low[self.fit_dims], high[self.fit_dims] = np.nan, np.nan
         self.angle_pairs = [tuple(int(i) for i in pair) for pair in config.angle_pairs]
         self.linear_dims = [i for i in range(low.size) if i not in angle_dims]
         self.register_buffer("center", torch.as_tensor((high + low) / 2, dtype=torch.float32))
         self.register_buffer("half_range", torch.as_tensor((high - low) / 2, dtype=torch.float32))
+        self.register_buffer("fitted", torch.tensor(not self.fit_dims))
+        self._ready = not self.fit_dims
+        self.register_load_state_dict_post_hook(ObservationEncoder._after_load)
+
+    @staticmethod
+    def _after_load(module: torch.nn.Module, incompatible_keys: Any) -> None:
+        """A loaded encoder is ready when the loaded ``fitted`` flag says so."""
+        assert isinstance(module, ObservationEncoder)
+        module._ready = bool(module.fitted)
+
+    @property
+    def needs_fit(self) -> bool:
+        """Whether some dims still wait for :meth:`fit` (their box is estimated from data)."""
+        return not self._ready
+
+    def fit(self, obs: torch.Tensor) -> str:
+        """Estimate the box of the dims without usable bounds from observations, and freeze it.
+
+        Per dim: the quantiles q and 1 - q (``config.quantile``) widened by ``config.margin``
+        of their range on each side, clipped to the space's bound where that side is finite;
+        a constant dim gets the half-range ``1e-3 max(1, |value|)``. At most 100,000 evenly
+        spaced rows are used. A second call is refused: phi's centres and psi's kernels are
+        placed in the frozen coordinates.
+
+        :param obs: (N, obs_dim) observations in env units (N >= 1), e.g. the states and
+            successors of the random phase
+        :return: a one-line description of the chosen box, for the log
+        """
+        if not self.needs_fit:
+            raise RuntimeError(
+                "the observation box is already fitted (or given) and frozen: phi and psi live in its coordinates"
+            )
+        if obs.ndim != 2 or obs.shape[1] != self.dim or obs.shape[0] == 0:
+            raise ValueError(f"fit needs (N >= 1, {self.dim}) observations, got shape {tuple(obs.shape)}")
+        rows = torch.linspace(0, obs.shape[0] - 1, min(obs.shape[0], MAX_FIT_ROWS)).round().long()
+        data = obs[rows.to(obs.device)][:, self.fit_dims].double().cpu()
+        if not torch.isfinite(data).all():
+            raise ValueError("fit got non-finite observations")
+        q = self.config.quantile
+        lower = torch.quantile(data, q, dim=0)
+        upper = torch.quantile(data, 1 - q, dim=0)
+        spread = upper - lower
+        lower = lower - self.config.margin * spread
+        upper = upper + self.config.margin * spread
+        space_low = torch.as_tensor(self.space_low[self.fit_dims])
+        space_high = torch.as_tensor(self.space_high[self.fit_dims])
+        lower = torch.where(torch.isfinite(space_low), torch.maximum(lower, space_low), lower)
+        upper = torch.where(torch.isfinite(space_high), torch.minimum(upper, space_high), upper)
+        center = (upper + lower) / 2
+        half_range = torch.maximum((upper - lower) / 2, 1e-3 * center.abs().clamp_min(1.0))
+        index = torch.as_tensor(self.fit_dims, device=self.center.device)
+        self.center[index] = center.to(self.center)
+        self.half_range[index] = half_range.to(self.half_range)
+        self.fitted.fill_(True)
+        self._ready = True
+        boxes = [f"{d}: [{c - h:.4g}, {c + h:.4g}]" for d, c, h in zip(self.fit_dims, center, half_range, strict=True)]
+        box = ", ".join(boxes[:LOGGED_DIMS]) + (f" and {len(boxes) - LOGGED_DIMS} more" if len(boxes) > LOGGED_DIMS else "")
+        return (
+            f"observation box estimated from {obs.shape[0]} observations (quantiles {q:g}..{1 - q:g}, "
+            f"margin {self.config.margin:g}) and frozen for dims {box}; to give it yourself pass {PYTHON_BOUNDS_HINT}"
+        )
+
+    def _check_ready(self) -> None:
+        if not self._ready:
+            raise RuntimeError(
+                f"observation dims {self.fit_dims} have no usable bounds (infinite, or half-range > "
+                f"{self.config.max_half_range:g}): their normalisation box is estimated from the first data "
+                f"(ObservationEncoder.fit), which has not happened yet; to give it yourself pass {PYTHON_BOUNDS_HINT}"
+            )
 
     @property
     def dim(self) -> int:
@@ -75,7 +156,8 @@ class ObservationEncoder(torch.nn.Module):
         return [True] * len(self.angle_pairs) + [False] * len(self.linear_dims)
 
     def normalize(self, obs: torch.Tensor) -> torch.Tensor:
-        """:param obs: (N, obs_dim) observations. :return: (N, obs_dim), each dim in [-1, 1]."""
+        """:param obs: (N, obs_dim) observations. :return: (N, obs_dim), each dim in [-1, 1] inside the box."""
+        self._check_ready()
         return (obs - self.center) / self.half_range
 
     def grid_coordinates(self, obs: torch.Tensor) -> torch.Tensor:
@@ -92,6 +174,7 @@ class ObservationEncoder(torch.nn.Module):
 
         :return: (n, obs_dim) observations in env units
         """
+        self._check_ready()
         unit = (torch.rand(n, self.dim, generator=generator) * 2 - 1).to(self.center.device)
         obs = self.center + unit * self.half_range
         for i, j in self.angle_pairs:
@@ -133,3 +216,17 @@ class ActionEncoder(torch.nn.Module):
         clamped to the bounds (float rounding must never step outside the space)."""
         actions = self.low + (encoded.clamp(-1, 1) + 1) * (self.high - self.low) / 2
         return torch.minimum(torch.maximum(actions, self.low), self.high)
+
+
+def _known_observations() -> dict[str, ObservationConfig]:
+    """TEMPORARY (until algorithm.py reads cme_agent.presets): the observation facts, read from
+    the presets, in the form algorithm.py imports today."""
+    from cme_agent.presets import preset_for, registered_presets
+
+    facts = {env_id: (preset_for(env_id) or {}).get("policy_kwargs", {}).get("observation") for env_id in registered_presets()}
+    facts = {env_id: fact for env_id, fact in facts.items() if env_id in ("Pendulum-v1", "Acrobot-v1", "CartPole-v1")}
+    return {env_id: ObservationConfig(**{k: _as_tuple(v) for k, v in fact.items()}) for env_id, fact in facts.items() if fact}
+
+
+KNOWN_OBSERVATIONS: dict[str, ObservationConfig] = _known_observations()
+"""TEMPORARY shim: delete with the import in algorithm.py (the presets hold these facts)."""

@@ -1,45 +1,117 @@
 """Policy evaluation (paper eq. (7)) and smoothed policy improvement (section 2.2).
 
 Shapes: n = |C| states in the collection, p = width of phi, q = width of psi.
+
+The evaluation's large products (A^T A, A A^T, A^T r, with A an n x p matrix) run in the
+input dtype (float32 by default); only the small p x p (or n x n) system is solved in
+float64. Ridges are added in place. When n < p the exact solvers switch to the dual form,
+an n x n system, which gives the same weights to rounding (the push-through identity
+``(X^T A + lambda I)^{-1} X^T = X^T (A X^T + lambda I)^{-1}``).
 """
 
 from __future__ import annotations
 
 import torch
 
+SYSTEM_BYTES_PER_ENTRY = 20
+"""Bytes per entry of the evaluation's m x m system, m = min(|C|, p): the product in float32
+(4), its float64 copy (8) and the LU factorisation's copy (8)."""
 
-def _regularised_solve(lhs: torch.Tensor, rhs: torch.Tensor, l2: float) -> torch.Tensor:
-    """Solve (lhs + l2 * mean(diag(lhs)) I) w = rhs in float64; the ridge keeps any system solvable."""
-    lhs, rhs = lhs.double(), rhs.double()
-    scale = lhs.diagonal().abs().mean().clamp_min(1e-12)
-    eye = torch.eye(lhs.shape[0], dtype=lhs.dtype, device=lhs.device)
-    return torch.linalg.solve(lhs + l2 * scale * eye, rhs)
+MATRIX_BYTES_PER_ENTRY = 12
+"""Bytes per entry of the evaluation's |C| x p float32 matrices: Phi_C, Phi'_C and A."""
+
+
+def evaluation_memory_bytes(width: int, collection_size: int) -> int:
+    """Peak bytes the exact evaluation holds for a phi of width p on a collection of n states:
+    ``12 n p`` (three n x p float32 matrices) + ``20 min(n, p)^2`` (the system, see
+    :data:`SYSTEM_BYTES_PER_ENTRY`).
+
+    :param width: p, the width of phi
+    :param collection_size: n = |C|
+    :return: bytes
+    """
+    smaller = min(width, collection_size)
+    return MATRIX_BYTES_PER_ENTRY * collection_size * width + SYSTEM_BYTES_PER_ENTRY * smaller * smaller
+
+
+def _ridge_solve(lhs: torch.Tensor, rhs: torch.Tensor, ridge: float) -> torch.Tensor:
+    """Solve (lhs + ridge I) x = rhs in float64, the ridge added in place on the float64 copy.
+
+    :param lhs: (m, m) system, any float dtype
+    :param rhs: (m,) right-hand side
+    :param ridge: lambda, in the units of lhs
+    :return: (m,) float64 solution
+    """
+    system = lhs.double()
+    system.diagonal().add_(ridge)
+    return torch.linalg.solve(system, rhs.double())
+
+
+def _transposed_product(matrix: torch.Tensor, vector: torch.Tensor, rows: int = 4096) -> torch.Tensor:
+    """matrix^T vector in float64, a block of rows at a time (no float64 copy of the whole matrix).
+
+    :param matrix: (n, p)
+    :param vector: (n,) float64
+    :return: (p,) float64
+    """
+    out = torch.zeros(matrix.shape[1], dtype=torch.float64, device=matrix.device)
+    for start in range(0, matrix.shape[0], rows):
+        out += matrix[start : start + rows].T.double() @ vector[start : start + rows]
+    return out
+
+
+def _ridge(diagonal_sum: torch.Tensor, width: int, l2: float) -> float:
+    """lambda = l2 * mean diag of the p x p normal equations = l2 * trace / p (floored at 1e-12 l2)."""
+    return l2 * max(float(diagonal_sum) / width, 1e-12)
 
 
 def bellman_residual_weights(
     phi: torch.Tensor, next_phi: torch.Tensor, rewards: torch.Tensor, gamma: float, l2: float
 ) -> torch.Tensor:
     """Bellman residual minimisation, eq. (7):
-    ``w = argmin_w ||Phi_C w - (r + gamma Phi'_C w)||^2 + ridge``, solved exactly.
+    ``w = argmin_w ||Phi_C w - (r + gamma Phi'_C w)||^2 + lambda ||w||^2``, solved exactly.
+
+    With A = Phi_C - gamma Phi'_C and lambda = l2 * mean diag(A^T A) = l2 ||A||_F^2 / p, the
+    primal solution ``(A^T A + lambda I) w = A^T r`` is used when n >= p, and the equal dual
+    one ``w = A^T (A A^T + lambda I)^{-1} r`` when n < p.
 
     :param phi: (n, p) Phi_C, phi at the states of C
     :param next_phi: (n, p) Phi'_C = E_model[phi~(S') | s_i, pi(s_i)] (= Psi_C B^T in feature form)
     :param rewards: (n,) expected rewards r(s_i, pi(s_i))
     :param gamma: discount factor
     :param l2: ridge, relative to the mean diagonal of the normal equations
-    :return: (p,) value weights w, V(s) = <w, phi(s)>
+    :return: (p,) value weights w, V(s) = <w, phi(s)>, in phi's dtype
     """
-    residual_map = (phi - gamma * next_phi).double()
-    return _regularised_solve(residual_map.T @ residual_map, residual_map.T @ rewards.double(), l2).to(phi.dtype)
+    residual_map = phi - gamma * next_phi
+    n, p = residual_map.shape
+    ridge = _ridge(torch.linalg.vector_norm(residual_map).square(), p, l2)
+    if n >= p:
+        weights = _ridge_solve(residual_map.T @ residual_map, residual_map.T @ rewards.to(residual_map.dtype), ridge)
+    else:
+        weights = _transposed_product(residual_map, _ridge_solve(residual_map @ residual_map.T, rewards, ridge))
+    return weights.to(phi.dtype)
 
 
 def lstd_weights(phi: torch.Tensor, next_phi: torch.Tensor, rewards: torch.Tensor, gamma: float, l2: float) -> torch.Tensor:
     """The fixed point of the projected Bellman equation (LSTD), the alternative to eq. (7):
-    ``Phi_C^T (Phi_C - gamma Phi'_C) w = Phi_C^T r``. Arguments and result as
-    :func:`bellman_residual_weights`."""
+    ``(Phi_C^T M + lambda I) w = Phi_C^T r`` with ``M = Phi_C - gamma Phi'_C`` and
+    lambda = l2 * mean |diag(Phi_C^T M)|.
+
+    When n < p the dual form ``w = Phi_C^T (M Phi_C^T + lambda I)^{-1} r`` gives the same w
+    (an n x n, non-symmetric system; it is singular exactly when the primal is). Unlike the
+    Bellman residual, the products run in float64: LSTD's non-symmetric system amplifies the
+    rounding of float32 products to O(1) errors in V (measured: tests/test_dual_solve.py).
+    Arguments and result as :func:`bellman_residual_weights`.
+    """
     phi64 = phi.double()
-    lhs = phi64.T @ (phi64 - gamma * next_phi.double())
-    return _regularised_solve(lhs, phi64.T @ rewards.double(), l2).to(phi.dtype)
+    residual_map = phi64 - gamma * next_phi.double()
+    n, p = phi.shape
+    ridge = _ridge((phi64 * residual_map).sum(0).abs().sum(), p, l2)
+    if n >= p:
+        weights = _ridge_solve(phi64.T @ residual_map, phi64.T @ rewards.double(), ridge)
+    else:
+        weights = phi64.T @ _ridge_solve(residual_map @ phi64.T, rewards, ridge)
+    return weights.to(phi.dtype)
 
 
 def bellman_residual_descent(
@@ -54,19 +126,20 @@ def bellman_residual_descent(
     """Eq. (7) by gradient descent warm-started from the previous weights:
     O(|C| p^2 + steps p^2), as in the paper's complexity statement.
 
-    Minimises ``(1/2n) ||A w - r||^2 + (l2 s / 2) ||w||^2`` with ``A = Phi_C - gamma Phi'_C``,
-    s the mean diagonal of A^T A / n, by Nesterov's accelerated gradient with step 1/L.
+    Minimises ``(1/2n) ||A w - r||^2 + (lambda / 2n) ||w||^2`` with ``A = Phi_C - gamma Phi'_C``
+    and lambda as in :func:`bellman_residual_weights` (so its minimiser is that function's w),
+    by Nesterov's accelerated gradient with step 1/L. The p x p product is formed in the input
+    dtype, the iterations run in float64.
 
     :param initial: (p,) starting weights (the previous w, zero-padded if needed)
     :param steps: number of gradient steps
     :return: (p,) value weights
     """
-    residual_map = (phi - gamma * next_phi).double()
-    n = residual_map.shape[0]
-    gram = residual_map.T @ residual_map / n
-    ridge = l2 * gram.diagonal().mean().clamp_min(1e-12)
-    gram = gram + ridge * torch.eye(gram.shape[0], dtype=gram.dtype, device=gram.device)
-    target = residual_map.T @ rewards.double() / n
+    residual_map = phi - gamma * next_phi
+    n, p = residual_map.shape
+    gram = (residual_map.T @ residual_map).double().div_(n)
+    gram.diagonal().add_(_ridge(torch.linalg.vector_norm(residual_map).square(), p, l2) / n)
+    target = (residual_map.T @ rewards.to(residual_map.dtype)).double().div_(n)
     lipschitz = float(torch.linalg.eigvalsh(gram)[-1])
     w = initial.double().clone()
     previous = w.clone()

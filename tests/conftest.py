@@ -10,13 +10,18 @@ from typing import Any
 
 import pytest
 
+from cme_agent.presets import preset_for
+
 ROOT = Path(__file__).resolve().parents[1]
 
-PENDULUM_POLICY = {"phi": {"resolution": [9, 7]}, "observation": {"angle_pairs": [[0, 1]]}}
-CARTPOLE_POLICY = {
-    "phi": {"resolution": [3, 3, 5, 5]},
-    "observation": {"low": [-2.4, -3.0, -0.21, -3.5], "high": [2.4, 3.0, 0.21, 3.5]},
-}
+
+def _observation_facts(env_id: str) -> dict[str, Any]:
+    return preset_for(env_id)["policy_kwargs"]["observation"]
+
+
+PENDULUM_POLICY = {"phi": {"resolution": [9, 7]}, "observation": _observation_facts("Pendulum-v1")}
+CARTPOLE_POLICY = {"phi": {"resolution": [3, 3, 5, 5]}, "observation": _observation_facts("CartPole-v1")}
+"""Small grids for quick tests; the observation facts (angle pairs, bounds) are the presets'."""
 
 
 def small_kwargs(**overrides: Any) -> dict[str, Any]:

@@ -110,12 +110,14 @@ def test_unsupported_action_space_is_named():
         CMEPolicyIteration("CMEPolicy", MultiDiscreteEnv())
 
 
-def test_infinite_observation_bounds_ask_for_normalisation():
+def test_infinite_observation_bounds_are_estimated_from_the_first_data():
     from gymnasium.envs.classic_control import CartPoleEnv
 
-    unknown = gym.wrappers.TimeLimit(CartPoleEnv(), 500)  # no env id: its bounds are not known
-    with pytest.raises(ValueError, match="infinite bounds in dims \\[1, 3\\]"):
-        CMEPolicyIteration("CMEPolicy", unknown)
+    unknown = gym.wrappers.TimeLimit(CartPoleEnv(), 500)  # no env id: no preset gives its velocity bounds
+    encoder = CMEPolicyIteration("CMEPolicy", unknown).dynamics.obs_encoder
+    assert encoder.needs_fit and encoder.fit_dims == [1, 3]
+    with pytest.raises(RuntimeError, match=r'dims \[1, 3\] have no usable bounds.*policy_kwargs=\{"observation"'):
+        encoder.normalize(torch.zeros(1, 4))
 
 
 def test_known_envs_get_their_observation_facts():
