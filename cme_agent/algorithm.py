@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import re
 import sys
 import time
 import warnings
@@ -41,20 +42,20 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from cme_agent.buffer import Transitions, TransitionStore
 from cme_agent.config import (
+    AgentConfig,
     EvaluationConfig,
     ExplorationConfig,
     FeatureSelectionConfig,
     ModelUpdateConfig,
     build_config,
-    check_positive_int,
-    check_unit_interval,
+    collection_size_for,
 )
 from cme_agent.dynamics import CMEDynamics, matching_pursuit
-from cme_agent.encoding import KNOWN_OBSERVATIONS
 from cme_agent.exploration import BehaviourPolicy
 from cme_agent.persistence import PersistenceMixin, plain
 from cme_agent.planning import bellman_residual_descent, bellman_residual_rms, bellman_residual_weights, lstd_weights
 from cme_agent.policy import CMEPolicy
+from cme_agent.presets import GROUPS, TOP_LEVEL_KEYS, apply_preset
 from cme_agent.rewards import RewardSpec, StepReward, resolve_reward
 
 SelfCME = TypeVar("SelfCME", bound="CMEPolicyIteration")
@@ -107,9 +108,9 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         self,
         policy: str | type[CMEPolicy],
         env: GymEnv | str | None,
-        gamma: float = 0.98,
-        omega: float = 0.5,
-        steps_per_iteration: int = 200,
+        gamma: float | None = None,
+        omega: float | None = None,
+        steps_per_iteration: int | None = None,
         feature_selection: FeatureSelectionConfig | dict[str, Any] | None = None,
         model_update: ModelUpdateConfig | dict[str, Any] | None = None,
         evaluation: EvaluationConfig | dict[str, Any] | None = None,
@@ -124,17 +125,10 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         device: torch.device | str = "auto",
         _init_setup_model: bool = True,
     ) -> None:
-        check_unit_interval("gamma", gamma, open_low=True, open_high=True)
-        check_unit_interval("omega", omega, open_low=True)
-        check_positive_int("steps_per_iteration", steps_per_iteration)
-        self.feature_selection_config = build_config(FeatureSelectionConfig, feature_selection, "feature_selection")
-        self.model_update_config = build_config(ModelUpdateConfig, model_update, "model_update")
-        self.evaluation_config = build_config(EvaluationConfig, evaluation, "evaluation")
-        self.exploration_config = build_config(ExplorationConfig, exploration, "exploration")
         super().__init__(
             policy,
             env,
-            learning_rate=self.model_update_config.learning_rate,
+            learning_rate=0.0,  # SB3's schedule is not used: the model's step is model_update.learning_rate
             policy_kwargs=policy_kwargs,
             stats_window_size=stats_window_size,
             tensorboard_log=tensorboard_log,
@@ -143,9 +137,28 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             support_multi_env=True,
             seed=seed,
         )
-        self.gamma = gamma
-        self.omega = omega
-        self.steps_per_iteration = steps_per_iteration
+        self.env_id, self.env_kwargs = self._env_identity(self.env)
+        given = {
+            "gamma": gamma,
+            "omega": omega,
+            "steps_per_iteration": steps_per_iteration,
+            "feature_selection": feature_selection,
+            "model_update": model_update,
+            "evaluation": evaluation,
+            "exploration": exploration,
+            "policy_kwargs": policy_kwargs,
+        }
+        # a loaded agent's saved settings are complete: its preset was applied when it was built
+        settings, self.preset_message = apply_preset(self.env_id if _init_setup_model else None, given)
+        agent = build_config(AgentConfig, {key: settings[key] for key in TOP_LEVEL_KEYS if key in settings}, "agent")
+        self.gamma, self.omega, self.steps_per_iteration = agent.gamma, agent.omega, agent.steps_per_iteration
+        groups = {group: build_config(cls, settings.get(group), group) for group, cls in GROUPS.items()}
+        self.feature_selection_config: FeatureSelectionConfig = groups["feature_selection"]
+        self.model_update_config: ModelUpdateConfig = groups["model_update"]
+        self.evaluation_config: EvaluationConfig = groups["evaluation"]
+        self.exploration_config: ExplorationConfig = groups["exploration"]
+        self.policy_kwargs = settings.get("policy_kwargs", {})
+        self.learning_rate = self.model_update_config.learning_rate
         self.reward_fn = reward_fn
         self.reset_envs_each_iteration = reset_envs_each_iteration
         self.stats_window_size = stats_window_size
@@ -153,7 +166,6 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         self._value_weights: torch.Tensor | None = None
         self.iteration = 0
         self.model_step_scale = 1.0
-        self.env_id, self.env_kwargs = self._env_identity(self.env)
         if self.env is not None:
             _check_spaces(self.observation_space, self.action_space)
         if _init_setup_model:
@@ -176,8 +188,6 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         self._np_rng = np.random.default_rng(seed)
         kwargs = dict(self.policy_kwargs)
         kwargs.setdefault("candidate_seed", seed)
-        if "observation" not in kwargs and self.env_id in KNOWN_OBSERVATIONS:
-            kwargs["observation"] = KNOWN_OBSERVATIONS[self.env_id]
         self.policy_kwargs = kwargs
         reward, self.reward_source = self._resolve_reward()
         self.policy = self.policy_class(
@@ -185,6 +195,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             self.action_space,
             feature_dynamics=self.model_update_config.feature_dynamics,
             reward=reward,
+            evaluation=self.evaluation_config,
             **kwargs,
         ).to(self.device)
         action_shape = () if isinstance(self.action_space, spaces.Discrete) else self.action_space.shape
@@ -210,10 +221,28 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             return None, "learned"
         if saved_source == "user" and self.reward_fn is None:
             raise ValueError("this model was trained with a user-supplied reward: pass reward_fn= to load()")
-        env = self.env.envs[0] if self.env is not None and hasattr(self.env, "envs") else None
-        if env is None and self.env_id is not None and saved_source == "env":
-            env = gym.make(self.env_id, **self.env_kwargs)
-        return resolve_reward(self.reward_fn, self.env_id, env)
+        return resolve_reward(self.reward_fn, self.env_id, self._local_env(remake=saved_source == "env"))
+
+    def _local_env(self, remake: bool) -> gym.Env | None:
+        """An instance of the env in this process, to read its ``reward_function``: the first env
+        of any VecEnv (a SubprocVecEnv sends a copy), or one made from the env id.
+
+        :param remake: without a VecEnv, make the env from its id (a loaded model whose reward was the env's)
+        """
+        if self.env is not None:
+            try:
+                return self.env.get_attr("unwrapped", [0])[0]
+            except Exception:  # an env that cannot travel between processes: make one here if it has an id
+                pass
+        if self.env_id is not None and (remake or self.env is not None):
+            return gym.make(self.env_id, **self.env_kwargs)
+        return None
+
+    def _env_name(self) -> str:
+        """The env's id, else its class name, for messages."""
+        if self.env_id is not None or self.env is None:
+            return repr(self.env_id)
+        return re.findall(r"<(\w+)", self.env.env_method("__str__", indices=[0])[0])[-1]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         return ["policy"], []
@@ -242,7 +271,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar
         )
         callback.on_training_start(locals(), globals())
-        self._announce_reward()
+        self._announce_settings()
         if self._behaviour is None or len(self._behaviour.explore) != self.n_envs:
             self._behaviour = self._make_behaviour()
         while self.num_timesteps < total_timesteps:
@@ -266,12 +295,21 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         :param new_data: the transitions this iteration collected (already in the store D)
         """
         self.iteration += 1
+        self._fit_normalisation()
         self.feature_selection(new_data)
         self.model_update()
         for _ in range(self.evaluation_config.rounds):
             collection = self.draw_collection()
             value_weights = self.policy_evaluation(collection)
             self.policy_improvement(value_weights)
+
+    def _fit_normalisation(self) -> None:
+        """Observation dims without usable bounds get their box from the data so far (the random
+        phase), once: the kernels of psi and phi are defined on it, so it is frozen from then on."""
+        encoder = self.dynamics.obs_encoder
+        if encoder.needs_fit:
+            data = [store.get(slice(0, len(store))) for store in (self.store, self.holdout) if len(store) > 0]
+            self.logger.info(encoder.fit(torch.cat([tensor for batch in data for tensor in (batch.obs, batch.next_obs)])))
 
     def _make_behaviour(self) -> BehaviourPolicy:
         return BehaviourPolicy(self.action_space, self.exploration_config, self._np_rng, self.n_envs)
@@ -321,7 +359,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             self._reset_envs()
         with self._timed("data_acquisition"):
             for _ in range(n_steps):
-                random_phase = self.num_timesteps < self.exploration_config.random_steps
+                random_phase = self.num_timesteps < self.exploration_config.random_steps or self.dynamics.obs_encoder.needs_fit
                 actions = self._behaviour(lambda: self.policy.predict(self._last_obs, deterministic=True)[0], random_phase)
                 new_obs, rewards, dones, infos = self.env.step(actions)
                 self.num_timesteps += self.env.num_envs
@@ -445,20 +483,22 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             self.logger.record("train/model_loss", float(self.dynamics.loss(psi, targets)))
 
     def draw_collection(self) -> torch.Tensor:
-        """The collection C of eq. (7): ``collection_size`` states, a ``uniform_fraction`` of them
-        uniform over the normalisation box (terminal states excluded), the rest drawn from D.
+        """The collection C of eq. (7): |C| states (``collection_size``, by default following p), a
+        ``uniform_fraction`` of them uniform over the normalisation box (terminal states excluded),
+        the rest drawn from D.
 
         :return: (|C|, obs_dim) states
         """
         config = self.evaluation_config
+        size = collection_size_for(self.dynamics.p, config)
         with self._timed("policy_evaluation"):
-            n_uniform = round(config.uniform_fraction * config.collection_size)
+            n_uniform = round(config.uniform_fraction * size)
             uniform = self.dynamics.obs_encoder.sample_uniform(2 * n_uniform, self._torch_rng)
             is_terminal = self.dynamics.reward.is_terminal
             if is_terminal is not None:
                 uniform = uniform[~is_terminal(uniform)]
             uniform = uniform[:n_uniform]
-            from_data = self.store.sample(config.collection_size - len(uniform), self._torch_rng).obs
+            from_data = self.store.sample(size - len(uniform), self._torch_rng).obs
             return torch.cat([uniform, from_data])
 
     def policy_evaluation(self, states: torch.Tensor) -> torch.Tensor:
@@ -497,14 +537,17 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             self.policy.improve(value_weights, self.gamma, self.omega)
 
     # ------------------------------------------------------------------ logging
-    def _announce_reward(self) -> None:
+    def _announce_settings(self) -> None:
+        """Say which preset was applied and which reward the agent plans with."""
+        if self.preset_message is not None and self.verbose >= 1:
+            self.logger.info(self.preset_message)
         if self.reward_source == "learned":
             self.logger.info(
-                f"No reward function is known for env {self.env_id!r}: the reward is learned by regression on psi "
+                f"No reward function is known for env {self._env_name()}: the reward is learned by regression on psi "
                 "(pass reward_fn= for a known one)."
             )
         elif self.verbose >= 1:
-            self.logger.info(f"Planning with the {self.reward_source} reward of env {self.env_id!r}.")
+            self.logger.info(f"Planning with the {self.reward_source} reward of env {self._env_name()}.")
 
     def dump_logs(self) -> None:
         """Write SB3's rollout/time keys, our train/ keys and the seconds of each phase."""

@@ -22,7 +22,7 @@ from gymnasium import spaces
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import PyTorchObs
 
-from cme_agent.config import ActionSearchConfig, ObservationConfig, build_config
+from cme_agent.config import ActionSearchConfig, EvaluationConfig, ObservationConfig, build_config
 from cme_agent.dynamics.cme import CMEDynamics, PhiSpec
 from cme_agent.kernel_bank import resize_buffers
 from cme_agent.planning import smooth
@@ -57,6 +57,7 @@ class CMEPolicy(BasePolicy):
     :param candidate_seed: seed of the sampled action candidates (Box actions, high dims)
     :param feature_dynamics: the model regresses phi~(s') - phi(s) (section 2.3)
     :param reward: the known reward; None: the model learns it
+    :param evaluation: the evaluation settings, for the memory check of phi (None: defaults)
     """
 
     def __init__(
@@ -70,13 +71,16 @@ class CMEPolicy(BasePolicy):
         candidate_seed: int = 0,
         feature_dynamics: bool = True,
         reward: RewardSpec | None = None,
+        evaluation: EvaluationConfig | None = None,
     ) -> None:
         super().__init__(observation_space, action_space, squash_output=False)
         self.phi_spec = phi
         self.action_search = build_config(ActionSearchConfig, action_search, "action_search")
         self.candidate_seed = candidate_seed
         self.observation_config = build_config(ObservationConfig, observation, "observation")
-        self.dynamics = CMEDynamics(observation_space, action_space, phi, self.observation_config, feature_dynamics, reward)
+        self.dynamics = CMEDynamics(
+            observation_space, action_space, phi, self.observation_config, feature_dynamics, reward, evaluation
+        )
         self.register_buffer("theta_phi", torch.zeros(self.dynamics.p))
         self.register_buffer("theta_psi", torch.zeros(0))
         self.register_buffer("candidates", self._make_candidates())

@@ -123,10 +123,12 @@ def test_infinite_observation_bounds_are_estimated_from_the_first_data():
 def test_known_envs_get_their_observation_facts():
     pendulum = CMEPolicyIteration("CMEPolicy", "Pendulum-v1")
     assert pendulum.policy.dynamics.obs_encoder.angle_pairs == [(0, 1)]
-    assert pendulum.policy.dynamics.phi.width == 11 * 11 + 1  # angle x velocity grid
+    assert pendulum.policy.dynamics.phi.width == 21 * 15 + 1  # its preset's angle x velocity grid
     cartpole = CMEPolicyIteration("CMEPolicy", "CartPole-v1")
     assert float(cartpole.policy.dynamics.obs_encoder.half_range[1]) == 3.0
-    explicit = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", policy_kwargs={"observation": {"angle_pairs": []}})
+    explicit = CMEPolicyIteration(
+        "CMEPolicy", "Pendulum-v1", policy_kwargs={"observation": {"angle_pairs": []}, "phi": {"resolution": [5]}}
+    )
     assert explicit.policy.dynamics.obs_encoder.angle_pairs == []
 
 

@@ -28,7 +28,7 @@ from gymnasium import spaces
 from torch import nn
 
 from cme_agent.buffer import Transitions
-from cme_agent.config import ObservationConfig, StateFeatureConfig, build_config
+from cme_agent.config import EvaluationConfig, ObservationConfig, StateFeatureConfig, build_config
 from cme_agent.dynamics.sgd import sgd_step
 from cme_agent.encoding import ActionEncoder, ObservationEncoder
 from cme_agent.kernel_bank import KernelBank, gaussian_kernel, resize_buffers
@@ -52,6 +52,7 @@ class CMEDynamics(nn.Module):
     :param observation: normalisation bounds and angle pairs (:class:`ObservationConfig` or dict)
     :param feature_dynamics: regress phi~(s') - phi(s) (section 2.3) instead of phi~(s')
     :param reward: the known reward; None: learn it by regression on psi (one more row of B)
+    :param evaluation: the evaluation settings, for the memory check of phi (None: defaults)
     """
 
     def __init__(
@@ -62,12 +63,13 @@ class CMEDynamics(nn.Module):
         observation: ObservationConfig | dict[str, Any] | None = None,
         feature_dynamics: bool = True,
         reward: RewardSpec | None = None,
+        evaluation: EvaluationConfig | None = None,
     ) -> None:
         super().__init__()
         self.obs_encoder = ObservationEncoder(observation_space, build_config(ObservationConfig, observation, "observation"))
         self.action_encoder = ActionEncoder(action_space)
         phi_config = phi if callable(phi) else build_config(StateFeatureConfig, phi, "phi")
-        self.phi = make_state_features(phi_config, self.obs_encoder)
+        self.phi = make_state_features(phi_config, self.obs_encoder, evaluation)
         self.psi = KernelBank(self.obs_encoder.dim, self.action_encoder.dim)
         self.feature_dynamics = feature_dynamics
         self.learn_reward = reward is None
