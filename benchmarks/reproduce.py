@@ -45,10 +45,15 @@ from learning_quality import TARGETS, episode_returns, train_with_evaluations
 from quadcopter_learning import controller_statistics, flight_statistics
 from stable_baselines3.common.logger import KVWriter, Logger
 
+from cme_agent.config import AgentConfig
+from cme_agent.presets import apply_preset
+
 FIGURE1_ENVS = ("toy", "mountain_car", "pendulum")
 TABLE_ENVS = ("pendulum", "cartpole", "mountain_car", "acrobot", "mountain_car_continuous")
 # Iterations of the policy-iteration agents per env (MP and Kernel alike: the paper compares per
 # iteration, Kernel collecting half the data per iteration), and the evaluation period in iterations.
+# These are the protocol of the paper's figures, counted in iterations, not an env-step budget: the
+# env-step budget of a training run is the env config's total_timesteps (conf/env/<name>.yaml).
 ITERATIONS = {
     "toy": (20, 2),
     "mountain_car": (60, 5),
@@ -140,7 +145,9 @@ def policy_iteration_run(agent: str, env: str, seed: int, profile: Profile) -> R
 @cache
 def steps_per_iteration(agent: str, env: str) -> int:
     """Env steps per iteration of agent=cme or agent=kernel on ``env`` (composing a config takes a while)."""
-    return int(compose_config([f"agent={agent}", f"env={env}"]).agent.steps_per_iteration)
+    cfg = compose_config([f"agent={agent}", f"env={env}"])
+    settings, _ = apply_preset(cfg.env.id, {"steps_per_iteration": cfg.agent.steps_per_iteration})  # null: the preset's
+    return int(settings.get("steps_per_iteration", AgentConfig().steps_per_iteration))
 
 
 def planned_runs(parts: Sequence[str], profile: Profile) -> list[Run]:

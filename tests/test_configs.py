@@ -9,7 +9,9 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
+from cme_agent.config import AgentConfig
 from cme_agent.experiment import make_env, make_eval_env
+from cme_agent.presets import preset_for
 from tests.conftest import run_train
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -32,7 +34,7 @@ def test_env_config_composes_into_an_agent(env_name, agent_name):
     env = make_env(cfg)
     agent = instantiate(cfg.agent, env=env, seed=0, _convert_="all")
     assert type(agent).__name__ == cfg.agent._target_.rsplit(".", 1)[1]
-    assert agent.gamma == cfg.agent.gamma
+    assert agent.gamma == (cfg.agent.gamma or preset_for(cfg.env.id).get("gamma", AgentConfig().gamma))
     assert agent.policy.dynamics.phi.width > 1
     env.close()
 
@@ -47,11 +49,16 @@ def test_eval_env_follows_the_config_and_its_starts_the_seed():
     assert quadcopter.unwrapped.agent_dt == 0.3  # overrides of env.kwargs reach the env
 
 
-def test_agent_env_specialisation_and_overrides():
+def test_presets_apply_and_command_line_overrides_win():
+    """The Hydra config holds no second copy of the presets: the agent it builds takes them from
+    cme_agent.presets, and what the command line sets wins."""
     cfg = _compose(["env=pendulum", "agent.gamma=0.95"])
-    assert list(cfg.agent.policy_kwargs.phi.resolution) == [21, 15]
-    assert cfg.agent.gamma == 0.95
-    assert _compose(["env=cartpole"]).agent.gamma == 0.99
+    assert cfg.agent.policy_kwargs.phi.resolution is None  # not given: the preset's
+    agent = instantiate(cfg.agent, env=cfg.env.id, seed=0, _convert_="all")
+    assert agent.policy.dynamics.phi.width == 21 * 15 + 1 and agent.omega == 0.2  # the preset
+    assert agent.gamma == 0.95  # the override
+    cartpole = _compose(["env=cartpole"])
+    assert instantiate(cartpole.agent, env=cartpole.env.id, seed=0, _convert_="all").gamma == 0.99
 
 
 def test_train_writes_events_model_and_summary(tmp_path):

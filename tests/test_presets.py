@@ -61,15 +61,6 @@ def test_every_env_config_has_a_preset():
     assert set(ENV_IDS.values()) == set(registered_presets())
 
 
-@pytest.mark.parametrize("env_name", sorted(ENV_IDS))
-def test_presets_hold_the_values_of_the_agent_env_yamls(env_name):
-    """Nothing of conf/agent_env/cme_<env>.yaml is lost in the move."""
-    written = yaml.safe_load((ROOT / "conf" / "agent_env" / f"cme_{env_name}.yaml").read_text())["agent"]
-    preset = _plain(preset_for(ENV_IDS[env_name]))
-    for key, value in _leaves(written):
-        assert _lookup(preset, key) == _plain(value), key
-
-
 @pytest.mark.parametrize("env_id", sorted(OLD_OBSERVATION_FACTS))
 def test_presets_hold_the_old_observation_facts(env_id):
     assert _plain(preset_for(env_id)["policy_kwargs"]["observation"]) == OLD_OBSERVATION_FACTS[env_id]
@@ -158,9 +149,9 @@ def test_register_preset_checks_and_replaces(monkeypatch):
     assert preset_for("MyEnv-v0") == {"gamma": 0.9, "evaluation": {"rounds": 2}}
 
 
-def test_the_proposed_hydra_agent_config_lists_every_setting_and_reads_the_presets():
-    """conf/agent/cme.yaml.proposed: every config field as null, so a composed config is the preset plus overrides."""
-    proposed = yaml.safe_load((ROOT / "conf" / "agent" / "cme.yaml.proposed").read_text())
+def test_the_hydra_agent_config_lists_every_setting_and_reads_the_presets():
+    """conf/agent/cme.yaml: every config field as null, so a composed config is the preset plus overrides."""
+    proposed = yaml.safe_load((ROOT / "conf" / "agent" / "cme.yaml").read_text())
     for group, cls in GROUPS.items():
         assert set(proposed[group]) == {f.name for f in dataclasses.fields(cls)}, group
     for group, cls in POLICY_GROUPS.items():

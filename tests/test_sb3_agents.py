@@ -1,5 +1,5 @@
 """SB3 baselines through the Hydra CLI: conf/agent/{sac,td3,ppo,dqn}.yaml with the zoo's
-hyperparameters per env (conf/agent_env/<agent>_<env>.yaml)."""
+hyperparameters per env (conf/agent_env/<agent>_<env>.yaml; the CME agent's live in cme_agent/presets.py)."""
 
 import inspect
 import json

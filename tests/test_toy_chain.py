@@ -201,7 +201,7 @@ def random_policy_return(env_kwargs: dict, episodes: int, seed: int) -> float:
 
 
 def test_cme_agent_learns_the_toy_chain_from_the_hydra_config(one_torch_thread: None) -> None:
-    """``env=toy`` composes with conf/agent_env/cme_toy.yaml into an agent that reaches and
+    """``env=toy`` composes (with the env's preset) into an agent that reaches and
     holds the goal after the config's budget (3000 steps, ~5 s): its return beats a random
     policy's by half of ``max_steps`` (the best return is ~0.8 of it); the same agent
     untrained does not, so the bar is cleared by learning alone."""
