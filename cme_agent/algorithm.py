@@ -164,6 +164,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         self.stats_window_size = stats_window_size
         self._behaviour: BehaviourPolicy | None = None
         self._value_weights: torch.Tensor | None = None
+        self._psi_buffer: torch.Tensor | None = None
         self.iteration = 0
         self.model_step_scale = 1.0
         if self.env is not None:
@@ -510,7 +511,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         """
         config, dynamics = self.evaluation_config, self.dynamics
         with self._timed("policy_evaluation"):
-            greedy = self.policy.greedy_step(states)
+            greedy = self.policy.greedy_step(states, psi_out=self._psi_workspace(len(states)))
             phi = greedy.phi
             next_phi = dynamics.expected_next_phi(phi, greedy.psi)
             rewards = dynamics.expected_reward(states, greedy.actions, phi, greedy.psi)
@@ -526,6 +527,14 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             self.logger.record("train/q_mean", float(greedy.values.mean()))
             self.logger.record("train/value_mean", float((phi @ weights).mean()))
             return weights
+
+    def _psi_workspace(self, n: int) -> torch.Tensor:
+        """An (n, q) buffer for psi on C, kept between the rounds of an iteration: a fresh one
+        would fault in its (tens of MB of) pages every round."""
+        shape = (n, self.q)
+        if self._psi_buffer is None or self._psi_buffer.shape != shape:
+            self._psi_buffer = torch.empty(shape, device=self.device)
+        return self._psi_buffer
 
     def policy_improvement(self, value_weights: torch.Tensor) -> None:
         """Policy improvement: Q_k = (1 - omega) Q_{k-1} + omega Q^_k on the linear weights of Q

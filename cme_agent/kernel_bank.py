@@ -21,7 +21,9 @@ clear of denormal floats, on which ``exp``, elementwise products and GEMMs run 1
 _CUTOFF_VALUE = math.exp(CUTOFF_EXPONENT)
 
 
-def gaussian_kernel(x: torch.Tensor, centres: torch.Tensor, inv_two_sq_bandwidth: torch.Tensor) -> torch.Tensor:
+def gaussian_kernel(
+    x: torch.Tensor, centres: torch.Tensor, inv_two_sq_bandwidth: torch.Tensor, out: torch.Tensor | None = None
+) -> torch.Tensor:
     """Gaussian kernel values between points and centres, one bandwidth per centre.
 
     The exponent ``-a_j ||x - c_j||^2`` with ``a_j = 1 / (2 h_j^2)`` expands to
@@ -32,12 +34,14 @@ def gaussian_kernel(x: torch.Tensor, centres: torch.Tensor, inv_two_sq_bandwidth
     :param x: (N, d) points
     :param centres: (q, d) centres
     :param inv_two_sq_bandwidth: (q,) values a_j = 1 / (2 h_j^2)
+    :param out: (N, q) buffer to write into (reused memory: no fresh pages to fault in), or None
     :return: (N, q) kernel values in [0, 1] (0 at or below exp(CUTOFF_EXPONENT))
     """
     a = inv_two_sq_bandwidth
     points = torch.cat([x, (x * x).sum(1, keepdim=True)], dim=1)
     weights = torch.cat([2 * a[:, None] * centres, -a[:, None]], dim=1)
-    exponent = torch.addmm(-a * (centres * centres).sum(1), points, weights.T)
+    bias = -a * (centres * centres).sum(1)
+    exponent = torch.addmm(bias, points, weights.T) if out is None else torch.addmm(bias, points, weights.T, out=out)
     if torch.is_grad_enabled() and exponent.requires_grad:  # the action refinement differentiates through psi
         return torch.nn.functional.threshold(exponent.clamp(CUTOFF_EXPONENT, 0.0).exp(), _CUTOFF_VALUE, 0.0)
     return torch.nn.functional.threshold_(exponent.clamp_(CUTOFF_EXPONENT, 0.0).exp_(), _CUTOFF_VALUE, 0.0)
@@ -64,14 +68,23 @@ class KernelBank(nn.Module):
         """q, the number of features."""
         return int(self.inv_two_sq_bandwidth.numel())
 
-    def forward(self, z: torch.Tensor) -> torch.Tensor:
-        """psi at normalised state-actions: :param z: (N, state_dim + action_dim) (z_s, z_a). :return: (N, q)."""
-        return gaussian_kernel(z, self.centres, self.inv_two_sq_bandwidth)
+    def forward(self, z: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
+        """psi at normalised state-actions.
 
-    def state_factor(self, z_state: torch.Tensor) -> torch.Tensor:
+        :param z: (N, state_dim + action_dim) normalised state-actions (z_s, z_a)
+        :param out: (N, q) buffer to write into, or None
+        :return: (N, q)
+        """
+        return gaussian_kernel(z, self.centres, self.inv_two_sq_bandwidth, out)
+
+    def state_factor(self, z_state: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
         """S (N, q): the state factor of psi, psi_j(s, a) = S[n, j] * A[k, j] (a Gaussian on a
-        concatenation factorises). :param z_state: (N, state_dim) normalised states."""
-        return gaussian_kernel(z_state, self.centres[:, : self.state_dim], self.inv_two_sq_bandwidth)
+        concatenation factorises).
+
+        :param z_state: (N, state_dim) normalised states
+        :param out: (N, q) buffer to write into, or None
+        """
+        return gaussian_kernel(z_state, self.centres[:, : self.state_dim], self.inv_two_sq_bandwidth, out)
 
     def action_factor(self, z_action: torch.Tensor) -> torch.Tensor:
         """A (K, q): the action factor of psi. :param z_action: (K, action_dim) normalised actions."""

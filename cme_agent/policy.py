@@ -28,6 +28,15 @@ from cme_agent.kernel_bank import resize_buffers
 from cme_agent.planning import smooth
 from cme_agent.rewards import RewardSpec
 
+BLOCK_ELEMENTS = 2**18
+"""Elements (1 MiB of float32) of one block of rows of the state factor in :meth:`CMEPolicy.greedy_step`."""
+
+
+def _row_blocks(n: int, width: int) -> list[slice]:
+    """Slices of ``n`` rows in blocks of about :data:`BLOCK_ELEMENTS` elements of ``width`` columns."""
+    size = max(1, BLOCK_ELEMENTS // max(width, 1))
+    return [slice(start, min(start + size, n)) for start in range(0, n, size)]
+
 
 @dataclass
 class GreedyStep:
@@ -148,29 +157,49 @@ class CMEPolicy(BasePolicy):
         """
         phi = self.dynamics.phi(obs) if phi is None else phi
         state_factor = self.dynamics.state_factor(obs) if state_factor is None else state_factor
-        n, k = obs.shape[0], self.candidates.shape[0]
         q_used = self.theta_psi.shape[0]
         weighted = self.candidate_factor()[:, :q_used] * self.theta_psi
-        pairs_obs = obs.repeat_interleave(k, dim=0)
-        pairs_actions = self.candidates.repeat(n, *([1] * (self.candidates.ndim - 1)))
-        rewards = self.dynamics.reward.step_reward(pairs_obs, pairs_actions).reshape(n, k)
-        values = torch.addmm(rewards, state_factor[:, :q_used], weighted.T)
+        values = torch.addmm(self._candidate_step_rewards(obs), state_factor[:, :q_used], weighted.T)
         return values.add_((phi @ self.theta_phi).unsqueeze(1))
 
-    def greedy_step(self, obs: torch.Tensor) -> GreedyStep:
+    def greedy_step(self, obs: torch.Tensor, psi_out: torch.Tensor | None = None) -> GreedyStep:
         """pi_{k+1} = greedy(Q_k) at a batch of states: the best candidate, refined by gradient
-        ascent if configured, with phi(s) and psi(s, pi(s)) built from the same state factor.
+        ascent if configured, with phi(s) and psi(s, pi(s)) = S(s) * A(pi(s)) built from the
+        same state factor S. S is built in blocks of rows small enough to stay in the CPU's
+        cache, and each block is used (Q over the candidates, then psi) before the next.
 
         :param obs: (N, obs_dim) observations
+        :param psi_out: (N, q) buffer for psi(s, pi(s)) (memory reused between calls), or None
         """
-        phi = self.dynamics.phi(obs)
-        state_factor = self.dynamics.state_factor(obs)
-        values, best = self.candidate_q_values(obs, phi, state_factor).max(dim=1)
+        dynamics, n, q_used = self.dynamics, obs.shape[0], self.theta_psi.shape[0]
+        phi = dynamics.phi(obs)
+        z_state = dynamics.obs_encoder.normalize(obs)
+        factor = self.candidate_factor()
+        weighted = factor[:, :q_used] * self.theta_psi
+        base = self._candidate_step_rewards(obs).add_((phi @ self.theta_phi).unsqueeze(1))
+        values, best = base.new_empty(n), torch.empty(n, dtype=torch.long, device=obs.device)
+        psi = obs.new_empty(n, dynamics.q) if psi_out is None else psi_out
+        blocks = _row_blocks(n, dynamics.q)
+        state_buffer, gathered = obs.new_empty(2, blocks[0].stop if blocks else 0, dynamics.q).unbind(0)
+        for rows in blocks:
+            length = rows.stop - rows.start
+            state = dynamics.psi.state_factor(z_state[rows], out=state_buffer[:length])
+            torch.max(torch.addmm(base[rows], state[:, :q_used], weighted.T), dim=1, out=(values[rows], best[rows]))
+            torch.mul(state, torch.index_select(factor, 0, best[rows], out=gathered[:length]), out=psi[rows])
         actions = self.candidates[best]
-        if not self.dynamics.action_encoder.discrete and self.action_search.refine_steps > 0:
+        if not dynamics.action_encoder.discrete and self.action_search.refine_steps > 0:
             actions, values = self._refine(obs, actions, values)
-            return GreedyStep(actions, values, phi, state_factor.mul_(self.dynamics.action_factor(actions)))
-        return GreedyStep(actions, values, phi, state_factor.mul_(self.candidate_factor()[best]))
+            refined_factor = dynamics.action_factor(actions)
+            for rows in _row_blocks(n, dynamics.q):
+                torch.mul(dynamics.psi.state_factor(z_state[rows]), refined_factor[rows], out=psi[rows])
+        return GreedyStep(actions, values, phi, psi)
+
+    def _candidate_step_rewards(self, obs: torch.Tensor) -> torch.Tensor:
+        """The known step reward at every state and candidate action: (N, obs_dim) -> (N, K)."""
+        n, k = obs.shape[0], self.candidates.shape[0]
+        pairs_obs = obs.repeat_interleave(k, dim=0)
+        pairs_actions = self.candidates.repeat(n, *([1] * (self.candidates.ndim - 1)))
+        return self.dynamics.reward.step_reward(pairs_obs, pairs_actions).reshape(n, k).clone()
 
     def greedy(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The greedy actions and their Q values: (N, obs_dim) -> (N, act_dim) or (N,), and (N,)."""

@@ -150,9 +150,11 @@ class CMEDynamics(nn.Module):
         :param chunk: minibatches whose inputs are built together
         """
         span = batch_size * chunk
+        buffer = self.weights.new_empty(min(span, len(batches)), self.q)  # reused: no fresh pages per chunk
         for start in range(0, len(batches), span):
             part = Transitions(*(tensor[start : start + span] for tensor in vars(batches).values()))
-            psi, targets = self.regression_data(part)
+            psi = self.psi(self.encode(part.obs, part.actions), out=buffer[: len(part)])
+            targets = self.targets(part)
             for step in range(0, len(part), batch_size):
                 sgd_step(self.weights, psi[step : step + batch_size], targets[step : step + batch_size], learning_rate, l2)
 

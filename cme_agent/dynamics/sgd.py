@@ -19,6 +19,7 @@ def sgd_step(weights: torch.Tensor, psi: torch.Tensor, targets: torch.Tensor, le
     :param learning_rate: normalised step in (0, 2)
     :param l2: ridge coefficient lambda
     """
-    eta = learning_rate / (psi * psi).sum(1).mean().clamp_min(1e-12)  # a 0-dim tensor: no host synchronisation
+    mean_sq_norm = torch.linalg.vector_norm(psi).square() / psi.shape[0]
+    eta = learning_rate / mean_sq_norm.clamp_min(1e-12)  # a 0-dim tensor: no host synchronisation
     error = torch.addmm(targets, psi, weights.T, alpha=-1).mul_(eta / psi.shape[0])
     weights.mul_(1 - eta * l2).addmm_(error.T, psi)
