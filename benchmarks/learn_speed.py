@@ -48,7 +48,8 @@ if name == "cartpole":
     )
     start = time.thread_time()
     model.learn(2000)
-    print(json.dumps({"seconds_per_step": (time.thread_time() - start) / model.num_timesteps, "q": model.policy.theta_psi.numel()}))
+    seconds_per_step = (time.thread_time() - start) / model.num_timesteps
+    print(json.dumps({"seconds_per_step": seconds_per_step, "q": model.policy.theta_psi.numel()}))
     sys.exit()
 model = CMEPolicyIteration(
     "CMEPolicy", "Pendulum-v1", seed=0, omega=0.2,
