@@ -37,11 +37,34 @@ def gaussian_kernel(
     :param out: (N, q) buffer to write into (reused memory: no fresh pages to fault in), or None
     :return: (N, q) kernel values in [0, 1] (0 at or below exp(CUTOFF_EXPONENT))
     """
+    return kernel_from_parameters(x, *kernel_parameters(centres, inv_two_sq_bandwidth), out)
+
+
+def kernel_parameters(centres: torch.Tensor, inv_two_sq_bandwidth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The GEMM operands of :func:`gaussian_kernel` that depend on the centres only.
+
+    :param centres: (q, d) centres
+    :param inv_two_sq_bandwidth: (q,) values a_j
+    :return: the (d + 1, q) matrix ``[2 a_j c_j, -a_j]^T`` and the (q,) bias ``-a_j ||c_j||^2``
+    """
     a = inv_two_sq_bandwidth
-    points = torch.cat([x, (x * x).sum(1, keepdim=True)], dim=1)
     weights = torch.cat([2 * a[:, None] * centres, -a[:, None]], dim=1)
-    bias = -a * (centres * centres).sum(1)
-    exponent = torch.addmm(bias, points, weights.T) if out is None else torch.addmm(bias, points, weights.T, out=out)
+    return weights.T.contiguous(), -a * (centres * centres).sum(1)
+
+
+def kernel_from_parameters(
+    x: torch.Tensor, weights: torch.Tensor, bias: torch.Tensor, out: torch.Tensor | None = None
+) -> torch.Tensor:
+    """:func:`gaussian_kernel` from the operands of :func:`kernel_parameters`.
+
+    :param x: (N, d) points
+    :param weights: (d + 1, q)
+    :param bias: (q,)
+    :param out: (N, q) buffer to write into, or None
+    :return: (N, q) kernel values
+    """
+    points = torch.cat([x, (x * x).sum(1, keepdim=True)], dim=1)
+    exponent = torch.addmm(bias, points, weights) if out is None else torch.addmm(bias, points, weights, out=out)
     if torch.is_grad_enabled() and exponent.requires_grad:  # the action refinement differentiates through psi
         return torch.nn.functional.threshold(exponent.clamp(CUTOFF_EXPONENT, 0.0).exp(), _CUTOFF_VALUE, 0.0)
     return torch.nn.functional.threshold_(exponent.clamp_(CUTOFF_EXPONENT, 0.0).exp_(), _CUTOFF_VALUE, 0.0)
@@ -61,7 +84,8 @@ class KernelBank(nn.Module):
         self.state_dim = state_dim
         self.register_buffer("centres", torch.zeros(0, state_dim + action_dim))
         self.register_buffer("inv_two_sq_bandwidth", torch.ones(0))
-        self.version = 0
+        self.version = 0  # changes whenever the features' tensors change (append, load, to): caches key on it
+        self._state_parameters: tuple[int, tuple[torch.Tensor, torch.Tensor]] | None = None
 
     @property
     def q(self) -> int:
@@ -84,7 +108,10 @@ class KernelBank(nn.Module):
         :param z_state: (N, state_dim) normalised states
         :param out: (N, q) buffer to write into, or None
         """
-        return gaussian_kernel(z_state, self.centres[:, : self.state_dim], self.inv_two_sq_bandwidth, out)
+        if self._state_parameters is None or self._state_parameters[0] != self.version:
+            parameters = kernel_parameters(self.centres[:, : self.state_dim], self.inv_two_sq_bandwidth)
+            self._state_parameters = (self.version, parameters)
+        return kernel_from_parameters(z_state, *self._state_parameters[1], out)
 
     def action_factor(self, z_action: torch.Tensor) -> torch.Tensor:
         """A (K, q): the action factor of psi. :param z_action: (K, action_dim) normalised actions."""
@@ -99,6 +126,11 @@ class KernelBank(nn.Module):
         self.centres = torch.cat([self.centres, centres.to(self.centres)])
         self.inv_two_sq_bandwidth = torch.cat([self.inv_two_sq_bandwidth, (1 / (2 * bandwidths**2)).to(self.centres)])
         self.version += 1
+
+    def _apply(self, fn: Any, recurse: bool = True) -> KernelBank:
+        """``to()``, ``double()``, ...: the tensors change, so do the caches built from them."""
+        self.version += 1
+        return super()._apply(fn, recurse)
 
     def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
         resize_buffers(self, state_dict, prefix, {"centres": 0, "inv_two_sq_bandwidth": 0})

@@ -17,10 +17,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import torch
 from gymnasium import spaces
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import PyTorchObs
+from stable_baselines3.common.utils import is_vectorized_observation
 
 from cme_agent.config import ActionSearchConfig, EvaluationConfig, ObservationConfig, build_config
 from cme_agent.dynamics.cme import CMEDynamics, PhiSpec
@@ -176,7 +178,7 @@ class CMEPolicy(BasePolicy):
         z_state = dynamics.obs_encoder.normalize(obs)
         factor = self.candidate_factor()
         weighted = factor[:, :q_used] * self.theta_psi
-        base = self._candidate_step_rewards(obs).add_((phi @ self.theta_phi).unsqueeze(1))
+        base = self._candidate_step_rewards(obs) + (phi @ self.theta_phi).unsqueeze(1)
         values, best = base.new_empty(n), torch.empty(n, dtype=torch.long, device=obs.device)
         psi = obs.new_empty(n, dynamics.q) if psi_out is None else psi_out
         blocks = _row_blocks(n, dynamics.q)
@@ -199,7 +201,7 @@ class CMEPolicy(BasePolicy):
         n, k = obs.shape[0], self.candidates.shape[0]
         pairs_obs = obs.repeat_interleave(k, dim=0)
         pairs_actions = self.candidates.repeat(n, *([1] * (self.candidates.ndim - 1)))
-        return self.dynamics.reward.step_reward(pairs_obs, pairs_actions).reshape(n, k).clone()
+        return self.dynamics.reward.step_reward(pairs_obs, pairs_actions).reshape(n, k)
 
     def greedy(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The greedy actions and their Q values: (N, obs_dim) -> (N, act_dim) or (N,), and (N,)."""
@@ -223,10 +225,50 @@ class CMEPolicy(BasePolicy):
         better = refined_values > values
         return torch.where(better.unsqueeze(1), refined, actions), torch.where(better, refined_values, values)
 
+    def act(self, obs: torch.Tensor) -> torch.Tensor:
+        """The greedy action, for acting: the best candidate (refined if configured), without
+        Q's state-only term <theta_phi, phi(s)>, which does not change the argmax.
+
+        :param obs: (N, obs_dim) observations
+        :return: (N, act_dim) Box actions in env units or (N,) Discrete indices
+        """
+        if not self.dynamics.action_encoder.discrete and self.action_search.refine_steps > 0:
+            return self.greedy(obs)[0]
+        q_used = self.theta_psi.shape[0]
+        weighted = self.candidate_factor()[:, :q_used] * self.theta_psi
+        state = self.dynamics.state_factor(obs)[:, :q_used]
+        return self.candidates[torch.addmm(self._candidate_step_rewards(obs), state, weighted.T).argmax(dim=1)]
+
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> torch.Tensor:
         """The greedy action (the policy is deterministic; exploration belongs to learn())."""
         assert isinstance(observation, torch.Tensor)
-        return self.greedy(observation.float())[0]
+        return self.act(observation.float())
+
+    def predict(
+        self,
+        observation: np.ndarray,
+        state: tuple[np.ndarray, ...] | None = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = False,
+    ) -> tuple[np.ndarray, tuple[np.ndarray, ...] | None]:
+        """The greedy action of one observation (obs_dim,) or a batch (N, obs_dim), as SB3's
+        ``BasePolicy.predict`` returns it, by a short path (this policy has no train/eval modes
+        and its actions lie in the action space by construction).
+
+        :param observation: the observation(s)
+        :param state: unused (no recurrent state); returned as given
+        :param episode_start: unused
+        :param deterministic: unused: the policy is deterministic
+        :return: the action(s) and ``state``
+        """
+        if isinstance(observation, tuple) and len(observation) == 2 and isinstance(observation[1], dict):
+            return super().predict(observation, state, episode_start, deterministic)  # SB3's error for the Gym/VecEnv mix-up
+        obs = np.asarray(observation, dtype=np.float32)
+        vectorized = is_vectorized_observation(obs, self.observation_space)
+        with torch.no_grad():
+            actions = self.act(torch.as_tensor(obs.reshape(-1, *self.observation_space.shape), device=self.device))
+        actions = actions.cpu().numpy().reshape((-1, *self.action_space.shape))
+        return (actions if vectorized else actions.squeeze(axis=0)), state
 
     # ------------------------------------------------------------------ improvement
     def improve(self, value_weights: torch.Tensor, gamma: float, omega: float) -> None:
