@@ -161,7 +161,7 @@ def smooth(previous: torch.Tensor, estimate: torch.Tensor, omega: float) -> torc
     """Policy improvement, Q_k = (1 - omega) Q_{k-1} + omega Q^_k, on the linear weights of Q.
 
     psi only grows by appending, so the previous weights are zero-padded to the new width
-    (DESIGN.md, fact 2): no history of earlier Q functions is kept.
+    (docs/design.md, "Q needs no history"): no history of earlier Q functions is kept.
 
     :param previous: (q_old,) weights of Q_{k-1}
     :param estimate: (q_new,) weights of Q^_k, q_new >= q_old

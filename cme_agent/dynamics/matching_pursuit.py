@@ -3,7 +3,7 @@
 With the candidate atoms G (n x c) evaluated on the subsample and the residual R (n x p),
 atom j removes ``score_j = ||G_j^T R||^2 / ||G_j||^2`` of the residual energy when given its
 least-squares weights ``b = G_j^T R / ||G_j||^2``. ``C = G^T R`` is computed once; after a
-pick, ``C <- C - (G^T G_j) b^T`` costs O(c (n + p)) (DESIGN.md, "Matching pursuit, done fast").
+pick, ``C <- C - (G^T G_j) b^T`` costs O(c (n + p)) (docs/design.md).
 """
 
 from __future__ import annotations
