@@ -27,8 +27,8 @@ def gaussian_kernel(
     """Gaussian kernel values between points and centres, one bandwidth per centre.
 
     The exponent ``-a_j ||x - c_j||^2`` with ``a_j = 1 / (2 h_j^2)`` expands to
-    ``-a_j ||c_j||^2 + [x, ||x||^2] . [2 a_j c_j, -a_j]``, so the whole (N, q) exponent is one
-    GEMM onto a broadcast bias; clamping, ``exp`` and the cut-off (:data:`CUTOFF_EXPONENT`)
+    ``[x, ||x||^2, 1] . [2 a_j c_j, -a_j, -a_j ||c_j||^2]``, so the whole (N, q) exponent is
+    one GEMM; clamping, ``exp`` and the cut-off (:data:`CUTOFF_EXPONENT`)
     then run in place on that one buffer (no (N, q) temporaries).
 
     :param x: (N, d) points
@@ -37,34 +37,34 @@ def gaussian_kernel(
     :param out: (N, q) buffer to write into (reused memory: no fresh pages to fault in), or None
     :return: (N, q) kernel values in [0, 1] (0 at or below exp(CUTOFF_EXPONENT))
     """
-    return kernel_from_parameters(x, *kernel_parameters(centres, inv_two_sq_bandwidth), out)
+    return kernel_from_points(kernel_points(x), kernel_parameters(centres, inv_two_sq_bandwidth), out)
 
 
-def kernel_parameters(centres: torch.Tensor, inv_two_sq_bandwidth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The GEMM operands of :func:`gaussian_kernel` that depend on the centres only.
+def kernel_parameters(centres: torch.Tensor, inv_two_sq_bandwidth: torch.Tensor) -> torch.Tensor:
+    """The GEMM operand of :func:`gaussian_kernel` that depends on the centres only.
 
     :param centres: (q, d) centres
     :param inv_two_sq_bandwidth: (q,) values a_j
-    :return: the (d + 1, q) matrix ``[2 a_j c_j, -a_j]^T`` and the (q,) bias ``-a_j ||c_j||^2``
+    :return: the (d + 2, q) matrix ``[2 a_j c_j, -a_j, -a_j ||c_j||^2]^T``
     """
-    a = inv_two_sq_bandwidth
-    weights = torch.cat([2 * a[:, None] * centres, -a[:, None]], dim=1)
-    return weights.T.contiguous(), -a * (centres * centres).sum(1)
+    a = inv_two_sq_bandwidth[:, None]
+    return torch.cat([2 * a * centres, -a, -a * (centres * centres).sum(1, keepdim=True)], dim=1).T.contiguous()
 
 
-def kernel_from_parameters(
-    x: torch.Tensor, weights: torch.Tensor, bias: torch.Tensor, out: torch.Tensor | None = None
-) -> torch.Tensor:
-    """:func:`gaussian_kernel` from the operands of :func:`kernel_parameters`.
+def kernel_points(x: torch.Tensor) -> torch.Tensor:
+    """The operand of :func:`gaussian_kernel` that depends on the points: (N, d) -> (N, d + 2) ``[x, ||x||^2, 1]``."""
+    return torch.cat([x, (x * x).sum(1, keepdim=True), torch.ones_like(x[:, :1])], dim=1)
 
-    :param x: (N, d) points
-    :param weights: (d + 1, q)
-    :param bias: (q,)
+
+def kernel_from_points(points: torch.Tensor, weights: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
+    """:func:`gaussian_kernel` from the operands of :func:`kernel_points` and :func:`kernel_parameters`.
+
+    :param points: (N, d + 2)
+    :param weights: (d + 2, q)
     :param out: (N, q) buffer to write into, or None
     :return: (N, q) kernel values
     """
-    points = torch.cat([x, (x * x).sum(1, keepdim=True)], dim=1)
-    exponent = torch.addmm(bias, points, weights) if out is None else torch.addmm(bias, points, weights, out=out)
+    exponent = torch.mm(points, weights) if out is None else torch.mm(points, weights, out=out)
     if torch.is_grad_enabled() and exponent.requires_grad:  # the action refinement differentiates through psi
         return torch.nn.functional.threshold(exponent.clamp(CUTOFF_EXPONENT, 0.0).exp(), _CUTOFF_VALUE, 0.0)
     return torch.nn.functional.threshold_(exponent.clamp_(CUTOFF_EXPONENT, 0.0).exp_(), _CUTOFF_VALUE, 0.0)
@@ -85,7 +85,7 @@ class KernelBank(nn.Module):
         self.register_buffer("centres", torch.zeros(0, state_dim + action_dim))
         self.register_buffer("inv_two_sq_bandwidth", torch.ones(0))
         self.version = 0  # changes whenever the features' tensors change (append, load, to): caches key on it
-        self._state_parameters: tuple[int, tuple[torch.Tensor, torch.Tensor]] | None = None
+        self._state_parameters: tuple[int, torch.Tensor] | None = None
 
     @property
     def q(self) -> int:
@@ -108,10 +108,14 @@ class KernelBank(nn.Module):
         :param z_state: (N, state_dim) normalised states
         :param out: (N, q) buffer to write into, or None
         """
+        return kernel_from_points(kernel_points(z_state), self.state_weights(), out)
+
+    def state_weights(self) -> torch.Tensor:
+        """The (state_dim + 2, q) operand of the state factor (:func:`kernel_parameters`), kept until the bank changes."""
         if self._state_parameters is None or self._state_parameters[0] != self.version:
             parameters = kernel_parameters(self.centres[:, : self.state_dim], self.inv_two_sq_bandwidth)
             self._state_parameters = (self.version, parameters)
-        return kernel_from_parameters(z_state, *self._state_parameters[1], out)
+        return self._state_parameters[1]
 
     def action_factor(self, z_action: torch.Tensor) -> torch.Tensor:
         """A (K, q): the action factor of psi. :param z_action: (K, action_dim) normalised actions."""

@@ -82,7 +82,7 @@ def bellman_residual_weights(
     :param l2: ridge, relative to the mean diagonal of the normal equations
     :return: (p,) value weights w, V(s) = <w, phi(s)>, in phi's dtype
     """
-    residual_map = phi - gamma * next_phi
+    residual_map = torch.add(phi, next_phi, alpha=-gamma)  # one pass, no (n, p) temporary
     n, p = residual_map.shape
     ridge = _ridge(torch.linalg.vector_norm(residual_map).square(), p, l2)
     if n >= p:
@@ -135,7 +135,7 @@ def bellman_residual_descent(
     :param steps: number of gradient steps
     :return: (p,) value weights
     """
-    residual_map = phi - gamma * next_phi
+    residual_map = torch.add(phi, next_phi, alpha=-gamma)  # one pass, no (n, p) temporary
     n, p = residual_map.shape
     gram = (residual_map.T @ residual_map).double().div_(n)
     gram.diagonal().add_(_ridge(torch.linalg.vector_norm(residual_map).square(), p, l2) / n)
@@ -154,7 +154,8 @@ def bellman_residual_rms(
     phi: torch.Tensor, next_phi: torch.Tensor, rewards: torch.Tensor, gamma: float, w: torch.Tensor
 ) -> float:
     """Root-mean-square Bellman residual of w over C under the model, ``||Phi w - r - gamma Phi' w|| / sqrt(n)``."""
-    return float(((phi - gamma * next_phi) @ w - rewards).pow(2).mean().sqrt())
+    residual = (phi @ w).sub_(next_phi @ w, alpha=gamma).sub_(rewards)  # matrix-vector products only
+    return float(residual.pow(2).mean().sqrt())
 
 
 def smooth(previous: torch.Tensor, estimate: torch.Tensor, omega: float) -> torch.Tensor:

@@ -26,7 +26,7 @@ from stable_baselines3.common.utils import is_vectorized_observation
 
 from cme_agent.config import ActionSearchConfig, EvaluationConfig, ObservationConfig, build_config
 from cme_agent.dynamics.cme import CMEDynamics, PhiSpec
-from cme_agent.kernel_bank import resize_buffers
+from cme_agent.kernel_bank import kernel_from_points, kernel_points, resize_buffers
 from cme_agent.planning import smooth
 from cme_agent.rewards import RewardSpec
 
@@ -175,7 +175,7 @@ class CMEPolicy(BasePolicy):
         """
         dynamics, n, q_used = self.dynamics, obs.shape[0], self.theta_psi.shape[0]
         phi = dynamics.phi(obs)
-        z_state = dynamics.obs_encoder.normalize(obs)
+        points, state_weights = kernel_points(dynamics.obs_encoder.normalize(obs)), dynamics.psi.state_weights()
         factor = self.candidate_factor()
         weighted = factor[:, :q_used] * self.theta_psi
         base = self._candidate_step_rewards(obs) + (phi @ self.theta_phi).unsqueeze(1)
@@ -185,7 +185,7 @@ class CMEPolicy(BasePolicy):
         state_buffer, gathered = obs.new_empty(2, blocks[0].stop if blocks else 0, dynamics.q).unbind(0)
         for rows in blocks:
             length = rows.stop - rows.start
-            state = dynamics.psi.state_factor(z_state[rows], out=state_buffer[:length])
+            state = kernel_from_points(points[rows], state_weights, out=state_buffer[:length])
             torch.max(torch.addmm(base[rows], state[:, :q_used], weighted.T), dim=1, out=(values[rows], best[rows]))
             torch.mul(state, torch.index_select(factor, 0, best[rows], out=gathered[:length]), out=psi[rows])
         actions = self.candidates[best]
@@ -193,7 +193,7 @@ class CMEPolicy(BasePolicy):
             actions, values = self._refine(obs, actions, values)
             refined_factor = dynamics.action_factor(actions)
             for rows in _row_blocks(n, dynamics.q):
-                torch.mul(dynamics.psi.state_factor(z_state[rows]), refined_factor[rows], out=psi[rows])
+                torch.mul(kernel_from_points(points[rows], state_weights), refined_factor[rows], out=psi[rows])
         return GreedyStep(actions, values, phi, psi)
 
     def _candidate_step_rewards(self, obs: torch.Tensor) -> torch.Tensor:
