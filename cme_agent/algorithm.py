@@ -268,6 +268,11 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         :param progress_bar: show a progress bar (tqdm + rich)
         :return: the trained agent
         """
+        if self.env is None:
+            raise ValueError(
+                "this agent has no env to learn on (it was loaded without one): pass it to "
+                "CMEPolicyIteration.load(path, env=...) or call set_env(env) before learn()"
+            )
         total_timesteps, callback = self._setup_learn(
             total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar
         )

@@ -46,3 +46,11 @@ def test_user_reward_must_be_given_again(tmp_path, pendulum_kwargs):
     with pytest.raises(ValueError, match="reward_fn"):
         CMEPolicyIteration.load(tmp_path / "m.zip")
     assert CMEPolicyIteration.load(tmp_path / "m.zip", reward_fn=reward).reward_source == "user"
+
+
+def test_learn_without_an_env_says_how_to_give_one(tmp_path, pendulum_kwargs):
+    model = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=0, **pendulum_kwargs)
+    model.learn(100)
+    model.save(tmp_path / "m.zip")
+    with pytest.raises(ValueError, match=r"load\(path, env=...\) or call set_env"):
+        CMEPolicyIteration.load(tmp_path / "m.zip").learn(100)
