@@ -52,7 +52,7 @@ BACKGROUND, INK, DOT = (255, 255, 255), (20, 20, 20), (215, 25, 28)
 
 MAP_SIZE = 256  # pixels of a 2-D map's side; a 1-D map is MAP_SIZE wide and STRIP_HEIGHT high
 STRIP_HEIGHT = 48
-LEFT, TOP, BOTTOM, BAR_GAP, BAR_WIDTH, RIGHT = 58, 8, 40, 12, 14, 64
+LEFT, TOP, BOTTOM, BAR_GAP, BAR_WIDTH, RIGHT = 58, 8, 40, 12, 14, 84
 FONT_SIZE = 11
 LINE_HEIGHT = FONT_SIZE + 3
 
@@ -243,7 +243,15 @@ def category_map(
     return canvas.array()
 
 
-def scatter(x: np.ndarray, y: np.ndarray | None, x_axis: Axis, y_axis: Axis | None, title: Sequence[str]) -> np.ndarray:
+def scatter(
+    x: np.ndarray,
+    y: np.ndarray | None,
+    x_axis: Axis,
+    y_axis: Axis | None,
+    title: Sequence[str],
+    groups: np.ndarray | None = None,
+    names: Sequence[str] | None = None,
+) -> np.ndarray:
     """Points on a labelled map (e.g. the feature bank's centres); points outside the axes are left out.
 
     :param x: (n,) horizontal coordinates
@@ -251,12 +259,21 @@ def scatter(x: np.ndarray, y: np.ndarray | None, x_axis: Axis, y_axis: Axis | No
     :param x_axis: the horizontal axis
     :param y_axis: the vertical axis, or None for a 1-D strip
     :param title: the lines written above the map
+    :param groups: (n,) integers in ``[0, len(names))``: each group in its colour, with a legend;
+        None: all points in one colour
+    :param names: the legend's name of each group
     :return: (H, W, 3) uint8 RGB
     """
     canvas = _Canvas(x_axis, y_axis, title)
     px, py = canvas.pixel(np.asarray(x, dtype=np.float64), None if y is None else np.asarray(y, dtype=np.float64))
     inside = (px >= LEFT) & (px <= LEFT + canvas.width) & (py >= canvas.top) & (py <= canvas.top + canvas.height)
-    for u, v in zip(px[inside], py[inside], strict=True):
-        canvas.draw.ellipse((u - 2, v - 2, u + 2, v + 2), fill=DOT)
+    if groups is None or names is None:
+        groups, names, colours = np.zeros(len(px), dtype=np.int64), None, np.array([DOT], dtype=np.uint8)
+    else:
+        colours = CATEGORIES[np.arange(len(names)) % len(CATEGORIES)]
+    for u, v, group in zip(px[inside], py[inside], np.asarray(groups)[inside], strict=True):
+        canvas.draw.ellipse((u - 2, v - 2, u + 2, v + 2), fill=tuple(int(c) for c in colours[group]))
     canvas.axes()
+    if names is not None:
+        canvas.legend(names, colours)
     return canvas.array()

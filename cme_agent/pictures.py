@@ -32,7 +32,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import HParam, Image, TensorBoardOutputFormat
 
 from cme_agent.encoding import ObservationEncoder
-from cme_agent.heatmaps import COOLWARM, Axis, category_map, heatmap, scatter
+from cme_agent.heatmaps import COOLWARM, Axis, category_map, heatmap, number, scatter
 from cme_agent.persistence import plain
 
 OBSERVATION_NAMES: dict[str, tuple[str, ...]] = {
@@ -50,6 +50,14 @@ ANGLE_NAMES: dict[str, dict[int, str]] = {
     "Acrobot-v1": {0: "theta1 [rad]", 2: "theta2 [rad]"},
 }
 """Axis names of angle pairs (keyed by the pair's cos index) of some envs."""
+
+ACTION_NAMES: dict[str, tuple[str, ...]] = {
+    "CartPole-v1": ("0: push left", "1: push right"),
+    "MountainCar-v0": ("0: push left", "1: no push", "2: push right"),
+    "Acrobot-v1": ("0: torque -1", "1: torque 0", "2: torque +1"),
+    "ToyChain-v0": ("0: left", "1: stay", "2: right"),
+}
+"""Legend names of the Discrete actions of some envs (else ``action i``)."""
 
 HOLDOUT_SAMPLES = 8192
 """Held-out transitions (evenly spaced over the store) whose model errors are binned."""
@@ -243,11 +251,17 @@ def _slice_note(dims: Sequence[FoldedDim], shown: Sequence[int], fixed: Mapping[
 
 
 def _action_pictures(
-    actions: np.ndarray, space: spaces.Space, shape: tuple[int, ...], axes: tuple[Axis, Axis | None], title: list[str]
+    actions: np.ndarray,
+    space: spaces.Space,
+    shape: tuple[int, ...],
+    axes: tuple[Axis, Axis | None],
+    title: list[str],
+    names: Sequence[str] | None = None,
 ) -> np.ndarray:
     """The greedy action map: a Discrete index with a legend, or one panel per Box dim side by side."""
     if isinstance(space, spaces.Discrete):
-        names = [f"action {i}" for i in range(int(space.n))]
+        if names is None or len(names) != int(space.n):
+            names = [f"action {i}" for i in range(int(space.n))]
         return category_map(actions.reshape(shape), names, *axes, ["greedy action (Discrete)", *title])
     panels = [
         heatmap(
@@ -301,7 +315,9 @@ def agent_pictures(
     values = values.double().cpu().numpy()
     pictures = {
         "pictures/value": heatmap(values.reshape(shape), *axes, ["V(s) = max_a Q(s, a)", *note]),
-        "pictures/greedy_action": _action_pictures(actions.cpu().numpy(), agent.action_space, shape, axes, note),
+        "pictures/greedy_action": _action_pictures(
+            actions.cpu().numpy(), agent.action_space, shape, axes, note, ACTION_NAMES.get(env_id)
+        ),
     }
 
     held_obs, errors = holdout_errors(agent)
@@ -319,8 +335,12 @@ def agent_pictures(
     centre_obs = encoder.center + centres * encoder.half_range
     coordinates = fold(centre_obs, shown_dims)
     y = coordinates[:, 1] if len(shown) == 2 else None
-    centre_title = [f"feature centres (state part of psi's {agent.q} kernels){projected}", head]
-    pictures["pictures/feature_centres"] = scatter(coordinates[:, 0], y, *axes, centre_title)
+    bandwidths = (1 / (2 * agent.dynamics.psi.inv_two_sq_bandwidth)).sqrt().double().cpu().numpy()
+    values, groups = np.unique(np.round(bandwidths, 6), return_inverse=True)
+    names = [f"h = {number(value)}" for value in values]
+    what = f"feature centres (state part of psi's {agent.q} kernels; h: bandwidth, normalised units)"
+    centre_title = [what + projected, head]
+    pictures["pictures/feature_centres"] = scatter(coordinates[:, 0], y, *axes, centre_title, groups, names)
     return pictures
 
 
@@ -384,8 +404,10 @@ class PictureCallback(BaseCallback):
             raise ValueError(f"pictures every={every} is invalid: must be an integer >= 1")
         if resolution < 2:
             raise ValueError(f"pictures resolution={resolution} is invalid: must be an integer >= 2")
-        self.every, self.picture_dims, self.resolution = every, picture_dims, resolution
-        self.fixed, self.hparams, self.metrics = fixed, hparams, tuple(metrics)
+        self.every, self.resolution = every, resolution
+        self.fixed = {int(key): float(value) for key, value in (fixed or {}).items()}  # Hydra keys may be strings
+        self.hparams, self.metrics = hparams, tuple(metrics)
+        self.picture_dims = None if picture_dims is None else [int(dim) for dim in picture_dims]
         self._drawn_at: int | None = None
 
     def _tensorboard(self) -> list[TensorBoardOutputFormat]:

@@ -145,3 +145,5 @@ def test_images_and_hparams_in_the_event_file(tmp_path):
 def test_callback_settings_are_checked():
     with pytest.raises(ValueError, match="every=0"):
         PictureCallback(every=0)
+    callback = PictureCallback(picture_dims=("2", 0), fixed={"3": "0.5"})  # as Hydra may pass them
+    assert callback.picture_dims == [2, 0] and callback.fixed == {3: 0.5}
