@@ -60,12 +60,17 @@ def markdown_table(header: list[str], rows: list[list[Any]]) -> str:
     return "\n".join(lines)
 
 
-def write_report(stem: str, text: str, curves: list[list[dict[str, Any]]]) -> None:
-    """Print ``text`` and write it to results/<stem>.md, the learning curves (one row per
-    evaluation, all runs) to results/<stem>.csv."""
+def write_markdown(stem: str, text: str) -> None:
+    """Print ``text`` and write it to results/<stem>.md."""
     print(text)
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / f"{stem}.md").write_text(text)
+
+
+def write_report(stem: str, text: str, curves: list[list[dict[str, Any]]]) -> None:
+    """Print ``text`` and write it to results/<stem>.md, the learning curves (one row per
+    evaluation, all runs) to results/<stem>.csv."""
+    write_markdown(stem, text)
     with open(RESULTS / f"{stem}.csv", "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=list(curves[0][0]))
         writer.writeheader()

@@ -23,7 +23,7 @@ import time
 import gymnasium as gym
 import numpy as np
 import torch
-from common import RESULTS, command_line, compose_config, markdown_table
+from common import command_line, compose_config, markdown_table, write_markdown
 from hydra.utils import instantiate
 from stable_baselines3.common.logger import configure
 from torch.utils.flop_counter import FlopCounterMode
@@ -177,9 +177,7 @@ def main() -> None:
         f"{markdown_table(header, rows)}\n\n"
         f"Matching pursuit, 2,000-point subsample x 1,000 candidates x p = 316, 50 picks: {mp_seconds:.3f} s.\n"
     )
-    print(text)
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "iteration_cost.md").write_text(text)
+    write_markdown("iteration_cost", text)
 
 
 if __name__ == "__main__":

@@ -27,7 +27,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from common import RESULTS, ROOT, command_line, markdown_table
+from common import ROOT, command_line, markdown_table, write_markdown
 
 WORKLOAD = r"""
 import json, sys, time
@@ -128,9 +128,7 @@ def main() -> None:
         f"Quickstart evaluation return (10 episodes, fixed starts, seed 0): {args.baseline}: {returns['baseline']}; "
         f"this commit: {returns['current']}.\n"
     )
-    print(text)
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "learn_speed.md").write_text(text)
+    write_markdown("learn_speed", text)
 
 
 if __name__ == "__main__":
