@@ -52,7 +52,7 @@ def random_transitions(n: int, seed: int) -> tuple[np.ndarray, ...]:
 
 def make_agent(seed: int, collection_size: int) -> CMEPolicyIteration:
     """The Pendulum-v1 config with no budget on q (so an iteration at q still runs matching pursuit)."""
-    overrides = ["env=pendulum", "agent.feature_selection.max_total_features=null"]
+    overrides = ["env=pendulum", "agent.feature_selection.max_total_features=inf"]
     overrides.append(f"agent.evaluation.collection_size={collection_size}")
     agent = instantiate(compose_config(overrides).agent, env="Pendulum-v1", seed=seed, _convert_="all")
     agent.set_logger(configure(None, []))

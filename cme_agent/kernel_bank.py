@@ -85,7 +85,7 @@ class KernelBank(nn.Module):
         self.register_buffer("centres", torch.zeros(0, state_dim + action_dim))
         self.register_buffer("inv_two_sq_bandwidth", torch.ones(0))
         self.version = 0  # changes whenever the features' tensors change (append, load, to): caches key on it
-        self._state_parameters: tuple[int, torch.Tensor] | None = None
+        self._parameters_cache: dict[str, tuple[int, torch.Tensor]] = {}
 
     @property
     def q(self) -> int:
@@ -112,10 +112,18 @@ class KernelBank(nn.Module):
 
     def state_weights(self) -> torch.Tensor:
         """The (state_dim + 2, q) operand of the state factor (:func:`kernel_parameters`), kept until the bank changes."""
-        if self._state_parameters is None or self._state_parameters[0] != self.version:
-            parameters = kernel_parameters(self.centres[:, : self.state_dim], self.inv_two_sq_bandwidth)
-            self._state_parameters = (self.version, parameters)
-        return self._state_parameters[1]
+        return self._cached_parameters("state", self.centres[:, : self.state_dim])
+
+    def weights(self) -> torch.Tensor:
+        """The (state_dim + action_dim + 2, q) operand of psi (:func:`kernel_parameters`), kept until the bank changes."""
+        return self._cached_parameters("full", self.centres)
+
+    def _cached_parameters(self, name: str, centres: torch.Tensor) -> torch.Tensor:
+        cached = self._parameters_cache.get(name)
+        if cached is None or cached[0] != self.version:
+            cached = (self.version, kernel_parameters(centres, self.inv_two_sq_bandwidth))
+            self._parameters_cache[name] = cached
+        return cached[1]
 
     def action_factor(self, z_action: torch.Tensor) -> torch.Tensor:
         """A (K, q): the action factor of psi. :param z_action: (K, action_dim) normalised actions."""

@@ -52,7 +52,7 @@ def test_sgd_step_is_equation_6():
 
 
 def test_sgd_update_is_consecutive_steps_of_equation_6():
-    """Building the inputs of several minibatches at once does not change the steps."""
+    """Building the targets and kernel operands of all minibatches at once does not change the steps."""
     dynamics = _dynamics(reward=None)
     data = _transitions(400)
     z = dynamics.encode(data.obs[:30], data.actions[:30])
@@ -62,7 +62,7 @@ def test_sgd_update_is_consecutive_steps_of_equation_6():
         part = Transitions(*(tensor[step : step + 20] for tensor in vars(data).values()))
         psi, targets = dynamics.regression_data(part)
         sgd_step(reference, psi, targets, 0.5, 1e-4)
-    dynamics.sgd_update(data, batch_size=20, learning_rate=0.5, l2=1e-4, chunk=3)
+    dynamics.sgd_update(data, batch_size=20, learning_rate=0.5, l2=1e-4)
     assert torch.allclose(dynamics.weights, reference, atol=1e-6)
     assert not torch.equal(reference, torch.zeros_like(reference))
 

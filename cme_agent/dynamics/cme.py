@@ -31,7 +31,7 @@ from cme_agent.buffer import Transitions
 from cme_agent.config import EvaluationConfig, ObservationConfig, StateFeatureConfig, build_config
 from cme_agent.dynamics.sgd import sgd_step
 from cme_agent.encoding import ActionEncoder, ObservationEncoder
-from cme_agent.kernel_bank import KernelBank, gaussian_kernel, resize_buffers
+from cme_agent.kernel_bank import KernelBank, gaussian_kernel, kernel_from_points, kernel_points, resize_buffers
 from cme_agent.rewards import RewardSpec
 from cme_agent.state_features import make_state_features
 
@@ -137,26 +137,25 @@ class CMEDynamics(nn.Module):
         """Mean squared residual per transition, (1/N) sum_i ||y_i - B psi_i||^2 (loss (4) / N)."""
         return ((targets - self.predict(psi)) ** 2).sum(1).mean()
 
-    def sgd_update(self, batches: Transitions, batch_size: int, learning_rate: float, l2: float, chunk: int = 16) -> None:
+    def sgd_update(self, batches: Transitions, batch_size: int, learning_rate: float, l2: float) -> None:
         """Consecutive minibatch steps of eq. (6) on B, in place.
 
-        The inputs and targets of ``chunk`` minibatches are built at once (they do not depend on
-        B); the steps themselves are sequential.
+        The targets of all steps and the kernel operands are built at once (they do not depend
+        on B); each step's psi goes into one reused buffer that stays in the CPU's cache, and
+        the steps themselves are sequential.
 
         :param batches: the minibatches of all steps, concatenated in order (a multiple of ``batch_size``)
         :param batch_size: transitions per step
         :param learning_rate: normalised step in (0, 2) (see :func:`~cme_agent.dynamics.sgd.sgd_step`)
         :param l2: ridge coefficient lambda
-        :param chunk: minibatches whose inputs are built together
         """
-        span = batch_size * chunk
-        buffer = self.weights.new_empty(min(span, len(batches)), self.q)  # reused: no fresh pages per chunk
-        for start in range(0, len(batches), span):
-            part = Transitions(*(tensor[start : start + span] for tensor in vars(batches).values()))
-            psi = self.psi(self.encode(part.obs, part.actions), out=buffer[: len(part)])
-            targets = self.targets(part)
-            for step in range(0, len(part), batch_size):
-                sgd_step(self.weights, psi[step : step + batch_size], targets[step : step + batch_size], learning_rate, l2)
+        targets = self.targets(batches)
+        points, weights = kernel_points(self.encode(batches.obs, batches.actions)), self.psi.weights()
+        buffer = self.weights.new_empty(min(batch_size, len(batches)), self.q)
+        for step in range(0, len(batches), batch_size):
+            rows = slice(step, step + batch_size)
+            psi = kernel_from_points(points[rows], weights, out=buffer[: len(targets[rows])])
+            sgd_step(self.weights, psi, targets[rows], learning_rate, l2)
 
     def dictionary(self, z: torch.Tensor, centres: torch.Tensor, bandwidths: torch.Tensor) -> torch.Tensor:
         """The candidate atoms of eq. (5): Gaussian kernels centred at ``centres`` at every bandwidth.
