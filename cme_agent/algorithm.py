@@ -245,6 +245,17 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             return repr(self.env_id)
         return re.findall(r"<(\w+)", self.env.env_method("__str__", indices=[0])[0])[-1]
 
+    def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
+        """Continue on ``env`` (its spaces must match). Unlike SB3's agents any number of envs
+        is accepted: the behaviour policy is rebuilt for it at the next ``learn()``.
+
+        :param env: a Gymnasium env or a VecEnv
+        :param force_reset: start fresh episodes at the next ``learn()``
+        """
+        vec_env = self._wrap_env(env, self.verbose)
+        self.n_envs = vec_env.num_envs
+        super().set_env(vec_env, force_reset)
+
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         return ["policy"], []
 
