@@ -96,6 +96,7 @@ class CMEPolicy(BasePolicy):
         self.register_buffer("theta_psi", torch.zeros(0))
         self.register_buffer("candidates", self._make_candidates())
         self._candidate_factor: tuple[tuple[int, int], torch.Tensor] | None = None
+        self._weighted_candidates: tuple[torch.Tensor, tuple[int, int], torch.Tensor] | None = None
 
     def _make_candidates(self) -> torch.Tensor:
         """Candidate actions in env units: all Discrete actions (K,), or a Box grid / sample (K, act_dim)."""
@@ -147,6 +148,17 @@ class CMEPolicy(BasePolicy):
             self._candidate_factor = (key, self.dynamics.action_factor(self.candidates))
         return self._candidate_factor[1]
 
+    def weighted_candidates(self) -> torch.Tensor:
+        """(K, len(theta_psi)): the candidates' action factor times theta_psi, so that
+        ``S(s) @ weighted.T`` is psi's part of Q at every candidate; kept until psi or theta_psi change."""
+        theta = self.theta_psi
+        key = (self.dynamics.psi.version, theta._version)
+        cached = self._weighted_candidates
+        if cached is None or cached[0] is not theta or cached[1] != key:
+            cached = (theta, key, self.candidate_factor()[:, : theta.shape[0]] * theta)
+            self._weighted_candidates = cached
+        return cached[2]
+
     def candidate_q_values(
         self, obs: torch.Tensor, phi: torch.Tensor | None = None, state_factor: torch.Tensor | None = None
     ) -> torch.Tensor:
@@ -160,8 +172,7 @@ class CMEPolicy(BasePolicy):
         phi = self.dynamics.phi(obs) if phi is None else phi
         state_factor = self.dynamics.state_factor(obs) if state_factor is None else state_factor
         q_used = self.theta_psi.shape[0]
-        weighted = self.candidate_factor()[:, :q_used] * self.theta_psi
-        values = torch.addmm(self._candidate_step_rewards(obs), state_factor[:, :q_used], weighted.T)
+        values = torch.addmm(self._candidate_step_rewards(obs), state_factor[:, :q_used], self.weighted_candidates().T)
         return values.add_((phi @ self.theta_phi).unsqueeze(1))
 
     def greedy_step(self, obs: torch.Tensor, psi_out: torch.Tensor | None = None) -> GreedyStep:
@@ -176,8 +187,7 @@ class CMEPolicy(BasePolicy):
         dynamics, n, q_used = self.dynamics, obs.shape[0], self.theta_psi.shape[0]
         phi = dynamics.phi(obs)
         points, state_weights = kernel_points(dynamics.obs_encoder.normalize(obs)), dynamics.psi.state_weights()
-        factor = self.candidate_factor()
-        weighted = factor[:, :q_used] * self.theta_psi
+        factor, weighted = self.candidate_factor(), self.weighted_candidates()
         base = self._candidate_step_rewards(obs) + (phi @ self.theta_phi).unsqueeze(1)
         values, best = base.new_empty(n), torch.empty(n, dtype=torch.long, device=obs.device)
         psi = obs.new_empty(n, dynamics.q) if psi_out is None else psi_out
@@ -199,8 +209,8 @@ class CMEPolicy(BasePolicy):
     def _candidate_step_rewards(self, obs: torch.Tensor) -> torch.Tensor:
         """The known step reward at every state and candidate action: (N, obs_dim) -> (N, K)."""
         n, k = obs.shape[0], self.candidates.shape[0]
-        pairs_obs = obs.repeat_interleave(k, dim=0)
-        pairs_actions = self.candidates.repeat(n, *([1] * (self.candidates.ndim - 1)))
+        pairs_obs = obs.unsqueeze(1).expand(n, k, *obs.shape[1:]).reshape(n * k, *obs.shape[1:])
+        pairs_actions = self.candidates.expand(n, *self.candidates.shape).reshape(n * k, *self.candidates.shape[1:])
         return self.dynamics.reward.step_reward(pairs_obs, pairs_actions).reshape(n, k)
 
     def greedy(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -234,10 +244,10 @@ class CMEPolicy(BasePolicy):
         """
         if not self.dynamics.action_encoder.discrete and self.action_search.refine_steps > 0:
             return self.greedy(obs)[0]
-        q_used = self.theta_psi.shape[0]
-        weighted = self.candidate_factor()[:, :q_used] * self.theta_psi
-        state = self.dynamics.state_factor(obs)[:, :q_used]
-        return self.candidates[torch.addmm(self._candidate_step_rewards(obs), state, weighted.T).argmax(dim=1)]
+        state = self.dynamics.state_factor(obs)[:, : self.theta_psi.shape[0]]
+        return self.candidates[
+            torch.addmm(self._candidate_step_rewards(obs), state, self.weighted_candidates().T).argmax(dim=1)
+        ]
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> torch.Tensor:
         """The greedy action (the policy is deterministic; exploration belongs to learn())."""
