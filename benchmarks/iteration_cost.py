@@ -147,15 +147,18 @@ def main() -> None:
 
     blocks = [tuple(column[args.large + i * M : args.large + (i + 1) * M] for column in data) for i in range(args.repeats + 1)]
     flops = counted_flops(small, blocks[-1])
-    rate = gemm_rate(args.collection_size, q, p, repeats=5)
-    floor = flops / rate
     cpu: dict[str, list[float]] = {"small": [], "large": []}
     phases: dict[str, list[dict[str, float]]] = {"small": [], "large": []}
+    rates, floor_ratios = [], []
     for block in blocks[: args.repeats]:
+        rates.append(gemm_rate(args.collection_size, q, p, repeats=3))  # next to each timing: the load varies
         for name, agent in (("small", small), ("large", large)):
             seconds, by_phase = timed_iteration(agent, block)
             cpu[name].append(seconds)
             phases[name].append(by_phase)
+        floor_ratios.append(cpu["small"][-1] / (flops / rates[-1]))
+    rate = statistics.median(rates)
+    floor = flops / rate
     rows = []
     for phase in PHASES:
         medians = [statistics.median(t.get(phase, 0.0) for t in phases[name]) for name in ("small", "large")]
@@ -171,9 +174,11 @@ def main() -> None:
         f"K = {small.policy.candidates.shape[0]}, {small.evaluation_config.rounds} rounds).\n\n"
         f"**FLOP floor**: one iteration does {flops / 1e9:.1f} GFLOP of matrix products "
         f"(torch.utils.flop_counter); at this machine's float32 GEMM rate, measured in the same run on an "
-        f"({args.collection_size}, {q}) x ({q}, {p}) product ({rate / 1e9:.1f} GFLOP/s per thread), that is "
-        f"a floor of **{floor:.2f} s**. The iteration took **{totals[0]:.2f} s** of thread CPU time at "
-        f"|D| = {len(small.store)}: **{totals[0] / floor:.2f}x its floor**.\n\n"
+        f"({args.collection_size}, {q}) x ({q}, {p}) product just before each repeat (median "
+        f"{rate / 1e9:.1f} GFLOP/s per thread), that is a floor of **{floor:.2f} s**. The iteration took "
+        f"**{totals[0]:.2f} s** of thread CPU time at |D| = {len(small.store)}: "
+        f"**{statistics.median(floor_ratios):.2f}x its floor** (median of the repeats' ratios, each to the rate "
+        f"measured next to it: {', '.join(f'{ratio:.2f}' for ratio in floor_ratios)}).\n\n"
         f"{markdown_table(header, rows)}\n\n"
         f"Matching pursuit, 2,000-point subsample x 1,000 candidates x p = 316, 50 picks: {mp_seconds:.3f} s.\n"
     )
