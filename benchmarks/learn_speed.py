@@ -9,7 +9,9 @@ in thread CPU seconds, the two versions alternating):
 - ``predict``: ``model.predict(obs, deterministic=True)`` on one observation, averaged over
   2,000 calls on the trained quickstart model;
 - ``cartpole``: CartPole-v1 at its preset (gamma 0.99, phi 5 x 7 x 9 x 9, today's bounds),
-  training seconds per env step over ``learn(2000)``.
+  training seconds per env step over ``learn(2000)``;
+- ``agreement``: the quickstart's first 400 steps (random actions, 2 iterations: the same data in
+  both versions), then q and the norms of B and of the Q weights.
 
 The baseline is the commit given by ``--baseline``, checked out into a scratch git worktree and
 imported in place of this checkout (same interpreter and packages: only cme_agent differs).
@@ -40,6 +42,17 @@ from cme_agent import CMEPolicyIteration
 
 torch.set_num_threads(1)
 name = sys.argv[1]
+if name == "agreement":
+    model = CMEPolicyIteration(
+        "CMEPolicy", "Pendulum-v1", seed=0, omega=0.2,
+        evaluation={"collection_size": 8000}, policy_kwargs={"phi": {"resolution": [21, 15]}},
+    )
+    model.learn(400)
+    weights = model.policy.dynamics.weights if hasattr(model.policy, "dynamics") else model.model.weights
+    print(json.dumps({"q": weights.shape[1], "B": weights.double().norm().item(),
+                      "theta_psi": model.policy.theta_psi.double().norm().item(),
+                      "theta_phi": model.policy.theta_phi.double().norm().item()}))
+    sys.exit()
 if name == "cartpole":
     model = CMEPolicyIteration(
         "CMEPolicy", "CartPole-v1", seed=0, gamma=0.99,
@@ -98,7 +111,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=1, help="alternated runs of each workload per version")
     args = parser.parse_args()
     versions = {"baseline": checkout(args.baseline), "current": ROOT}
-    results: dict[str, dict[str, list[dict[str, float]]]] = {w: {v: [] for v in versions} for w in ("quickstart", "cartpole")}
+    workloads = ("agreement", "quickstart", "cartpole")
+    results: dict[str, dict[str, list[dict[str, float]]]] = {w: {v: [] for v in versions} for w in workloads}
     for _ in range(args.repeats):
         for workload in results:
             for version, source in versions.items():
@@ -116,6 +130,11 @@ def main() -> None:
     ):
         before, after = median(workload, "baseline", key) * scale, median(workload, "current", key) * scale
         rows.append([label, f"{before:.3g} {unit}", f"{after:.3g} {unit}", f"{before / after:.2f}x"])
+    agreement = {version: results["agreement"][version][0] for version in versions}
+    norms = "; ".join(
+        f"{key}: {agreement['baseline'][key]:.6g} vs {agreement['current'][key]:.6g}"
+        for key in ("q", "B", "theta_psi", "theta_phi")
+    )
     returns = {
         version: ", ".join(f"{r['return_mean']:.2f} +- {r['return_std']:.2f}" for r in results["quickstart"][version])
         for version in versions
@@ -126,7 +145,8 @@ def main() -> None:
         f"commit {args.baseline} in a scratch worktree, same interpreter and packages).\n\n"
         f"{markdown_table(['workload', args.baseline, 'this commit', 'speed-up'], rows)}\n\n"
         f"Quickstart evaluation return (10 episodes, fixed starts, seed 0): {args.baseline}: {returns['baseline']}; "
-        f"this commit: {returns['current']}.\n"
+        f"this commit: {returns['current']}.\n\nAfter the same 400 random-phase steps (2 iterations, the same data), "
+        f"{args.baseline} vs this commit (q, then Frobenius norms): {norms}.\n"
     )
     write_markdown("learn_speed", text)
 
