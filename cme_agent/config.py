@@ -229,6 +229,42 @@ def collection_size_for(width: int, config: EvaluationConfig) -> int:
     return min(max(MIN_COLLECTION_SIZE, COLLECTION_PER_FEATURE * width), MAX_COLLECTION_SIZE)
 
 
+IMPROVEMENT_METHODS = ("smoothed_greedy", "soft")
+"""The policy improvement steps: the paper's greedy step on the smoothed Q, and KL-regularised
+(softmax) policy iteration."""
+
+
+@dataclass(frozen=True)
+class ImprovementConfig:
+    """Policy improvement: the paper's smoothed greedy step or KL-regularised (softmax) policy iteration.
+
+    ``"smoothed_greedy"`` (section 2.2): Q_k = (1 - omega) Q_{k-1} + omega Q^_k and
+    pi_{k+1} = greedy(Q_k). ``"soft"`` (Politex, Abbasi-Yadkori et al. 2019; Vieillard et al.
+    2020): pi_{k+1}(a|s) proportional to exp(beta_k / k * sum_{j<=k} Q^_j(s, a)) over the
+    candidate actions, i.e. mirror descent on the policy, pi_{k+1} proportional to
+    pi_k exp(eta Q^_k); the policy keeps the average Qbar_k = (1/k) sum_j Q^_j (omega is not
+    used) and an inverse temperature beta_k on it. Acting (``predict(deterministic=True)``)
+    takes the argmax of Qbar_k, which is the argmax of the summed Q.
+
+    :param method: ``"smoothed_greedy"`` (the paper's, the default) or ``"soft"``
+    :param beta: soft only: beta_k = beta * k / sigma_k with ``scale="spread"`` (sigma_k the
+        spread of Qbar_k over the candidates, see :func:`cme_agent.planning.action_spread`: a
+        candidate one spread better than the average gets e^{beta} times its weight per
+        improvement), or beta_k = beta * k with ``scale="fixed"`` (beta in 1 / reward units:
+        exactly pi_{k+1} proportional to exp(beta sum_j Q^_j))
+    :param scale: soft only: ``"spread"`` (scale-free, the default) or ``"fixed"``
+    """
+
+    method: str = "smoothed_greedy"
+    beta: float = 0.1
+    scale: str = "spread"
+
+    def __post_init__(self) -> None:
+        check_choice("improvement.method", self.method, IMPROVEMENT_METHODS)
+        check_positive("improvement.beta", self.beta)
+        check_choice("improvement.scale", self.scale, ("spread", "fixed"))
+
+
 @dataclass(frozen=True)
 class ExplorationConfig:
     """Behaviour policy of data acquisition: the greedy policy mixed with a noisy version.
