@@ -240,29 +240,36 @@ class ImprovementConfig:
 
     ``"smoothed_greedy"`` (section 2.2): Q_k = (1 - omega) Q_{k-1} + omega Q^_k and
     pi_{k+1} = greedy(Q_k). ``"soft"`` (Politex, Abbasi-Yadkori et al. 2019; Vieillard et al.
-    2020): pi_{k+1}(a|s) proportional to exp(beta_k / k * sum_{j<=k} Q^_j(s, a)) over the
-    candidate actions, i.e. mirror descent on the policy, pi_{k+1} proportional to
-    pi_k exp(eta Q^_k); the policy keeps the average Qbar_k = (1/k) sum_j Q^_j (omega is not
-    used) and an inverse temperature beta_k on it. Acting (``predict(deterministic=True)``)
-    takes the argmax of Qbar_k, which is the argmax of the summed Q.
+    2020): pi_{k+1}(a|s) proportional to exp(beta_k / n_k * sum_{j<=k} decay^{k-j} Q^_j(s, a))
+    over the candidate actions, n_k = sum_{j<=k} decay^{k-j} (= k without decay): mirror
+    descent on the policy, pi_{k+1} proportional to pi_k^decay exp(eta Q^_k) (KL-regularised,
+    and entropy-regularised when decay < 1). The policy keeps the weighted average
+    Qbar_k = (1/n_k) sum_j decay^{k-j} Q^_j (omega is not used) and an inverse temperature
+    beta_k on it. Acting (``predict(deterministic=True)``) takes the argmax of Qbar_k, which
+    is the argmax of the summed Q.
 
     :param method: ``"smoothed_greedy"`` (the paper's, the default) or ``"soft"``
-    :param beta: soft only: beta_k = beta * k / sigma_k with ``scale="spread"`` (sigma_k the
+    :param beta: soft only: beta_k = beta * n_k / sigma_k with ``scale="spread"`` (sigma_k the
         spread of Qbar_k over the candidates, see :func:`cme_agent.planning.action_spread`: a
         candidate one spread better than the average gets e^{beta} times its weight per
-        improvement), or beta_k = beta * k with ``scale="fixed"`` (beta in 1 / reward units:
-        exactly pi_{k+1} proportional to exp(beta sum_j Q^_j))
+        improvement), or beta_k = beta * n_k with ``scale="fixed"`` (beta in 1 / reward units:
+        exactly pi_{k+1} proportional to exp(beta sum_j decay^{k-j} Q^_j))
     :param scale: soft only: ``"spread"`` (scale-free, the default) or ``"fixed"``
+    :param decay: soft only, in (0, 1]: weight of the past sum per improvement (1: the plain
+        sum, every estimate kept; below 1 the policy forgets estimates of older models over
+        about 1 / (1 - decay) improvements and its beta_k stops growing at beta / (1 - decay))
     """
 
     method: str = "smoothed_greedy"
     beta: float = 0.1
     scale: str = "spread"
+    decay: float = 1.0
 
     def __post_init__(self) -> None:
         check_choice("improvement.method", self.method, IMPROVEMENT_METHODS)
         check_positive("improvement.beta", self.beta)
         check_choice("improvement.scale", self.scale, ("spread", "fixed"))
+        check_unit_interval("improvement.decay", self.decay, open_low=True)
 
 
 @dataclass(frozen=True)

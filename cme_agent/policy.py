@@ -129,7 +129,7 @@ class CMEPolicy(BasePolicy):
         )
         self.register_buffer("theta_phi", torch.zeros(self.dynamics.p))
         self.register_buffer("theta_psi", torch.zeros(0))
-        # soft improvement only: k, the number of estimates averaged, and beta_k on Qbar_k
+        # soft improvement only: n_k, the (decayed) count of estimates averaged, and beta_k on Qbar_k
         self.register_buffer("improvements", torch.zeros(()))
         self.register_buffer("inverse_temperature", torch.zeros(()))
         self.register_buffer("candidates", self._make_candidates())
@@ -376,8 +376,9 @@ class CMEPolicy(BasePolicy):
         ``Q^_k(s, a) = r(s, a) + gamma <w_k, E_model[phi~(S') | s, a]>``:
 
         - smoothed greedy (section 2.2): Q_k = (1 - omega) Q_{k-1} + omega Q^_k; pi_{k+1} = greedy(Q_k);
-        - soft (KL-regularised): Qbar_k = Qbar_{k-1} + (Q^_k - Qbar_{k-1}) / k, the running sum
-          k Qbar_k zero-padded as psi grows; pi_{k+1} = softmax(beta_k Qbar_k) (:meth:`soft_step`).
+        - soft (KL-regularised): n_k = decay n_{k-1} + 1, Qbar_k = Qbar_{k-1} + (Q^_k - Qbar_{k-1}) / n_k,
+          so the running sum n_k Qbar_k = sum_j decay^{k-j} Q^_j, zero-padded as psi grows;
+          pi_{k+1} = softmax(beta_k Qbar_k) (:meth:`soft_step`).
 
         :param value_weights: (p,) w_k from policy evaluation (eq. (7))
         :param gamma: discount factor
@@ -391,15 +392,15 @@ class CMEPolicy(BasePolicy):
             self.theta_phi = smooth(self.theta_phi, theta_phi, omega)
             self.theta_psi = smooth(self.theta_psi, theta_psi, omega)
             return
-        self.improvements += 1
+        self.improvements.mul_(self.improvement.decay).add_(1)  # n_k = decay n_{k-1} + 1
         step = 1.0 / float(self.improvements)
         self.theta_phi = smooth(self.theta_phi, theta_phi, step)
         self.theta_psi = smooth(self.theta_psi, theta_psi, step)
         self.inverse_temperature = self._inverse_temperature(states)
 
     def _inverse_temperature(self, states: torch.Tensor | None) -> torch.Tensor:
-        """beta_k = beta k / sigma(Qbar_k) (``scale="spread"``, sigma from :func:`action_spread` on
-        the states) or beta k (``"fixed"``): pi_{k+1} proportional to exp(beta_k / k sum_j Q^_j).
+        """beta_k = beta n_k / sigma(Qbar_k) (``scale="spread"``, sigma from :func:`action_spread` on
+        the states) or beta n_k (``"fixed"``): pi_{k+1} proportional to exp(beta_k / n_k sum_j decay^{k-j} Q^_j).
 
         :param states: (N, obs_dim) states for the spread (needed with ``scale="spread"``)
         :return: 0-dim tensor beta_k

@@ -187,25 +187,28 @@ def test_infinite_beta_gives_the_greedy_policy():
     assert torch.equal(policy.act(obs), greedy.actions)  # acting: the argmax of the summed Q
 
 
-def test_summed_q_weights_zero_pad_as_psi_grows():
-    """k Qbar_k = sum_j Q^_j, each Q^_j read on the bank of its time: psi only appends."""
-    policy, obs = _random_policy(improvement={**SOFT, "scale": "fixed", "beta": 0.5}, q=10)
+@pytest.mark.parametrize("decay", [1.0, 0.7])
+def test_summed_q_weights_zero_pad_as_psi_grows(decay):
+    """n_k Qbar_k = sum_j decay^{k-j} Q^_j (the plain sum k Qbar_k without decay), each Q^_j
+    read on the bank of its time: psi only appends, so the old weights are zero-padded."""
+    policy, obs = _random_policy(improvement={**SOFT, "scale": "fixed", "beta": 0.5, "decay": decay}, q=10)
     policy.theta_psi, policy.theta_phi = torch.zeros(0), torch.zeros(policy.dynamics.p)
     generator = torch.Generator().manual_seed(3)
-    estimates, gamma = [], 0.9
+    summed, count, gamma = 0.0, 0.0, 0.9
     for k, added in enumerate((0, 7, 0, 12), start=1):
         grow(policy, added, generator)
         weights = torch.randn(policy.dynamics.p, generator=generator)
         theta_phi, theta_psi = policy.dynamics.backup_weights(weights, gamma)
-        step_rewards = policy._candidate_step_rewards(obs)
         psi = torch.stack([policy.dynamics.features(obs, a.expand(len(obs), 1)) for a in policy.candidates], 1)
-        estimates.append(step_rewards + (policy.dynamics.phi(obs) @ theta_phi)[:, None] + psi @ theta_psi)
+        estimate = policy._candidate_step_rewards(obs) + (policy.dynamics.phi(obs) @ theta_phi)[:, None] + psi @ theta_psi
+        summed, count = decay * summed + estimate, decay * count + 1
         policy.improve(weights, gamma, omega=0.5)  # omega is not used by the soft improvement
         assert policy.theta_psi.shape == (policy.dynamics.q,)
-        assert float(policy.improvements) == k and float(policy.inverse_temperature) == pytest.approx(0.5 * k)
-        assert torch.allclose(k * policy.candidate_q_values(obs), sum(estimates), atol=1e-3)
-        # pi_{k+1} proportional to exp(beta sum_j Q^_j)
-        assert torch.allclose(policy.probabilities(obs), torch.softmax(0.5 * sum(estimates), 1), atol=1e-5)
+        assert float(policy.improvements) == pytest.approx(count) and (decay < 1 or count == k)
+        assert float(policy.inverse_temperature) == pytest.approx(0.5 * count)
+        assert torch.allclose(count * policy.candidate_q_values(obs), summed, atol=1e-3)
+        # pi_{k+1} proportional to exp(beta sum_j decay^{k-j} Q^_j)
+        assert torch.allclose(policy.probabilities(obs), torch.softmax(0.5 * summed, 1), atol=1e-5)
 
 
 def test_spread_scale_makes_beta_free_of_the_reward_unit():
@@ -271,6 +274,8 @@ def test_soft_improvement_config_is_checked():
         ImprovementConfig(method="soft", beta=0)
     with pytest.raises(ValueError, match=r"improvement.scale='max' is invalid"):
         ImprovementConfig(scale="max")
+    with pytest.raises(ValueError, match=r"improvement.decay=0 is invalid"):
+        ImprovementConfig(decay=0)
     with pytest.raises(ValueError, match=r"action_search.refine_steps=3 is invalid with improvement.method='soft'"):
         CMEPolicyIteration("CMEPolicy", "Pendulum-v1", improvement=SOFT, policy_kwargs={"action_search": {"refine_steps": 3}})
 
@@ -300,3 +305,14 @@ def test_soft_learn_save_load_predict(tmp_path, pendulum_kwargs):
     resumed = CMEPolicyIteration.load(tmp_path / "soft.zip", env=model.get_env())
     resumed.learn(200, reset_num_timesteps=False)
     assert float(resumed.policy.improvements) == 12 and resumed.policy.theta_psi.shape[0] <= resumed.q
+
+
+def test_a_policy_saved_before_the_soft_improvement_loads():
+    """State dicts without ``improvements`` and ``inverse_temperature`` (older model files) load strictly, as k = 0."""
+    policy, _ = _random_policy(improvement=None)
+    state = policy.state_dict()
+    for name in ("improvements", "inverse_temperature"):
+        del state[name]
+    fresh, _ = _random_policy(improvement=None, seed=1)
+    fresh.load_state_dict(state, strict=True)
+    assert torch.equal(fresh.theta_psi, policy.theta_psi) and float(fresh.improvements) == 0
