@@ -261,9 +261,12 @@ class ImprovementConfig:
     """
 
     method: str = "smoothed_greedy"
-    beta: float = 0.1
+    # Pendulum-v1, 6,000 steps, final returns on 10 fixed starts (seeds 0-2): -191, -173, -163
+    # with beta 0.5 and decay 0.9; -659, -163, -701 with 0.1 and 1 (the plain sum learns too
+    # slowly: early estimates of poor models keep their weight); smoothed greedy -137, -139, -533
+    beta: float = 0.5
     scale: str = "spread"
-    decay: float = 1.0
+    decay: float = 0.9
 
     def __post_init__(self) -> None:
         check_choice("improvement.method", self.method, IMPROVEMENT_METHODS)

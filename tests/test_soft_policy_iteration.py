@@ -216,7 +216,7 @@ def test_spread_scale_makes_beta_free_of_the_reward_unit():
     transitions, rewards = _finite_mdp(6, 3, seed=4)
     probabilities = []
     for unit in (1.0, 1000.0):
-        policy, states = _mdp_policy(transitions, unit * rewards, improvement={**SOFT, "beta": 0.3})
+        policy, states = _mdp_policy(transitions, unit * rewards, improvement={**SOFT, "beta": 0.3, "decay": 1.0})
         for _ in range(3):
             weights, _, _ = _evaluate(policy, states, 0.9)
             policy.improve(weights, 0.9, 0.5, states)
@@ -243,15 +243,16 @@ def _coarse_features(seed: int) -> torch.Tensor:
     return torch.randn(8, 3, generator=torch.Generator().manual_seed(100 + seed), dtype=torch.float64)
 
 
+@pytest.mark.parametrize("soft_config", [SOFT, {**SOFT, "decay": 1.0, "beta": 0.1}], ids=["defaults", "plain_sum"])
 @pytest.mark.parametrize("seed", sorted(GREEDY_DROPS))
-def test_soft_iteration_value_never_drops_while_the_greedy_one_does(seed):
+def test_soft_iteration_value_never_drops_while_the_greedy_one_does(seed, soft_config):
     """An exact model (B psi = E[phi(S') | s, a]) but phi coarser than the states, as in every
     continuous env: the Bellman-residual value is approximate, and the greedy step on it
     (smoothed, omega = 0.5) makes the policy value drop; the soft step does not."""
     transitions, rewards = _finite_mdp(8, 3, seed)
     features = _coarse_features(seed)
     greedy = _policy_values(transitions, rewards, None, features)
-    soft = _policy_values(transitions, rewards, SOFT, features)
+    soft = _policy_values(transitions, rewards, soft_config, features)
     assert np.diff(greedy).min() == pytest.approx(GREEDY_DROPS[seed], abs=1e-3)
     assert np.diff(soft).min() >= -1e-9
     assert soft[-1] > soft[0]
@@ -259,10 +260,10 @@ def test_soft_iteration_value_never_drops_while_the_greedy_one_does(seed):
 
 @pytest.mark.parametrize("seed", range(5))
 def test_soft_iteration_is_monotone_with_an_exact_value(seed):
-    """One-hot phi: exact evaluation, so pi_{k+1} proportional to pi_k exp(eta Q^{pi_k}) improves
-    every state (mirror descent); with beta fixed, for any beta."""
+    """One-hot phi: exact evaluation, so pi_{k+1} proportional to pi_k exp(eta Q^{pi_k}) (the
+    plain sum, decay 1) improves every state (mirror descent); with beta fixed, for any beta."""
     transitions, rewards = _finite_mdp(6, 3, seed)
-    for improvement in (SOFT, {**SOFT, "scale": "fixed", "beta": 3.0}):
+    for improvement in ({**SOFT, "decay": 1.0}, {**SOFT, "scale": "fixed", "beta": 3.0, "decay": 1.0}):
         values = _policy_values(transitions, rewards, improvement, None, rounds=20)
         assert np.diff(values).min() >= -1e-9, improvement
 
@@ -280,15 +281,22 @@ def test_soft_improvement_config_is_checked():
         CMEPolicyIteration("CMEPolicy", "Pendulum-v1", improvement=SOFT, policy_kwargs={"action_search": {"refine_steps": 3}})
 
 
+def _decayed_count(k: int) -> float:
+    """n_k = decay n_{k-1} + 1 with the default decay, after k improvements (4 iterations of 2 rounds: 8)."""
+    decay = ImprovementConfig().decay
+    return (1 - decay**k) / (1 - decay)
+
+
 def test_soft_learn_save_load_predict(tmp_path, pendulum_kwargs):
-    model = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=0, improvement={**SOFT, "beta": 0.2}, **pendulum_kwargs)
+    model = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=0, improvement=SOFT, **pendulum_kwargs)
     model.learn(400)
     policy = model.policy
-    assert model.q > 0 and float(policy.improvements) == 8 and float(policy.inverse_temperature) > 0
+    assert model.q > 0 and float(policy.inverse_temperature) > 0
+    assert float(policy.improvements) == pytest.approx(_decayed_count(8))
     assert policy.theta_psi.shape[0] <= model.q
     model.save(tmp_path / "soft.zip")
     loaded = CMEPolicyIteration.load(tmp_path / "soft.zip")
-    assert loaded.improvement_config == ImprovementConfig(method="soft", beta=0.2)
+    assert loaded.improvement_config == ImprovementConfig(method="soft")
     for name in ("theta_phi", "theta_psi", "improvements", "inverse_temperature"):
         assert torch.equal(getattr(loaded.policy, name), getattr(policy, name)), name
     rng = np.random.default_rng(0)
@@ -304,7 +312,8 @@ def test_soft_learn_save_load_predict(tmp_path, pendulum_kwargs):
     )
     resumed = CMEPolicyIteration.load(tmp_path / "soft.zip", env=model.get_env())
     resumed.learn(200, reset_num_timesteps=False)
-    assert float(resumed.policy.improvements) == 12 and resumed.policy.theta_psi.shape[0] <= resumed.q
+    assert float(resumed.policy.improvements) == pytest.approx(_decayed_count(12))
+    assert resumed.policy.theta_psi.shape[0] <= resumed.q
 
 
 def test_a_policy_saved_before_the_soft_improvement_loads():
