@@ -46,6 +46,7 @@ from cme_agent.config import (
     EvaluationConfig,
     ExplorationConfig,
     FeatureSelectionConfig,
+    ImprovementConfig,
     ModelUpdateConfig,
     build_config,
     collection_size_for,
@@ -84,6 +85,8 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
     :param model_update: SGD settings (:class:`ModelUpdateConfig` or dict)
     :param evaluation: policy evaluation settings (:class:`EvaluationConfig` or dict)
     :param exploration: behaviour policy settings (:class:`ExplorationConfig` or dict)
+    :param improvement: the policy improvement step (:class:`ImprovementConfig` or dict): the
+        paper's smoothed greedy step (default) or KL-regularised (soft) policy iteration
     :param reward_fn: the reward r(s, a) as a :class:`RewardSpec` or a torch callable
         ``(obs (N, obs_dim), action) -> (N,)``; default: the known reward of the env id, the
         env's own ``reward_function``, or else a reward learned by regression on psi. Not saved
@@ -115,6 +118,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         model_update: ModelUpdateConfig | dict[str, Any] | None = None,
         evaluation: EvaluationConfig | dict[str, Any] | None = None,
         exploration: ExplorationConfig | dict[str, Any] | None = None,
+        improvement: ImprovementConfig | dict[str, Any] | None = None,
         reward_fn: RewardSpec | StepReward | None = None,
         reset_envs_each_iteration: bool = False,
         policy_kwargs: dict[str, Any] | None = None,
@@ -146,6 +150,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             "model_update": model_update,
             "evaluation": evaluation,
             "exploration": exploration,
+            "improvement": improvement,
             "policy_kwargs": policy_kwargs,
         }
         # a loaded agent's saved settings are complete: its preset was applied when it was built
@@ -157,6 +162,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         self.model_update_config: ModelUpdateConfig = groups["model_update"]
         self.evaluation_config: EvaluationConfig = groups["evaluation"]
         self.exploration_config: ExplorationConfig = groups["exploration"]
+        self.improvement_config: ImprovementConfig = groups["improvement"]
         self.policy_kwargs = settings.get("policy_kwargs", {})
         self.learning_rate = self.model_update_config.learning_rate
         self.reward_fn = reward_fn
@@ -197,6 +203,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             feature_dynamics=self.model_update_config.feature_dynamics,
             reward=reward,
             evaluation=self.evaluation_config,
+            improvement=self.improvement_config,
             **kwargs,
         ).to(self.device)
         action_shape = () if isinstance(self.action_space, spaces.Discrete) else self.action_space.shape
@@ -318,7 +325,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         for _ in range(self.evaluation_config.rounds):
             collection = self.draw_collection()
             value_weights = self.policy_evaluation(collection)
-            self.policy_improvement(value_weights)
+            self.policy_improvement(value_weights, collection)
 
     def _fit_normalisation(self) -> None:
         """Observation dims without usable bounds get their box from the data so far (the random
@@ -347,6 +354,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             "model_update": plain(self.model_update_config),
             "evaluation": plain(self.evaluation_config),
             "exploration": plain(self.exploration_config),
+            "improvement": plain(self.improvement_config),
             "reset_envs_each_iteration": self.reset_envs_each_iteration,
             "policy_kwargs": plain(self.policy_kwargs),
             "stats_window_size": self.stats_window_size,
@@ -519,18 +527,27 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             return torch.cat([uniform, from_data])
 
     def policy_evaluation(self, states: torch.Tensor) -> torch.Tensor:
-        """Policy evaluation, eq. (7): value weights w of the current greedy policy on C, by
-        Bellman residual minimisation (or LSTD), exactly or by warm-started gradient descent.
+        """Policy evaluation, eq. (7): value weights w of the current policy on C, by Bellman
+        residual minimisation (or LSTD), exactly or by warm-started gradient descent. The greedy
+        policy is evaluated at its actions; the soft one in expectation over the candidates,
+        ``Phi'_C = sum_a pi(a|s) E_model[phi~(S') | s, a]`` and the rewards likewise (both are
+        linear in psi, so they are read at E_pi[psi(s, A)]).
 
         :param states: (|C|, obs_dim) the collection C
         :return: (p,) value weights w, V(s) = <w, phi(s)>
         """
         config, dynamics = self.evaluation_config, self.dynamics
         with self._timed("policy_evaluation"):
-            greedy = self.policy.greedy_step(states, psi_out=self._psi_workspace(len(states)))
-            phi = greedy.phi
-            next_phi = dynamics.expected_next_phi(phi, greedy.psi)
-            rewards = dynamics.expected_reward(states, greedy.actions, phi, greedy.psi)
+            psi_out = self._psi_workspace(len(states))
+            if self.policy.soft:
+                step = self.policy.soft_step(states, psi_out=psi_out)
+                rewards = step.step_rewards + dynamics.linear_reward(step.phi, step.psi)
+                self._record_soft_policy(step.probabilities)
+            else:
+                step = self.policy.greedy_step(states, psi_out=psi_out)
+                rewards = dynamics.expected_reward(states, step.actions, step.phi, step.psi)
+            phi = step.phi
+            next_phi = dynamics.expected_next_phi(phi, step.psi)
             if config.solver == "gd":
                 initial = self._value_weights if self._value_weights is not None else torch.zeros_like(phi[0])
                 weights = bellman_residual_descent(phi, next_phi, rewards, self.gamma, config.l2, initial, config.gd_steps)
@@ -540,7 +557,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
                 weights = bellman_residual_weights(phi, next_phi, rewards, self.gamma, config.l2)
             self._value_weights = weights
             self.logger.record("train/bellman_residual", bellman_residual_rms(phi, next_phi, rewards, self.gamma, weights))
-            self.logger.record("train/q_mean", float(greedy.values.mean()))
+            self.logger.record("train/q_mean", float(step.values.mean()))
             self.logger.record("train/value_mean", float((phi @ weights).mean()))
             return weights
 
@@ -552,14 +569,25 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             self._psi_buffer = torch.empty(shape, device=self.device)
         return self._psi_buffer
 
-    def policy_improvement(self, value_weights: torch.Tensor) -> None:
-        """Policy improvement: Q_k = (1 - omega) Q_{k-1} + omega Q^_k on the linear weights of Q
-        (zero-padded, no history); pi_{k+1} = greedy(Q_k) (:meth:`CMEPolicy.improve`).
+    def _record_soft_policy(self, probabilities: torch.Tensor) -> None:
+        """Log the soft policy's mean entropy on C (nats; log K is uniform) and its beta_k."""
+        entropy = -(probabilities * probabilities.clamp_min(1e-30).log()).sum(1).mean()
+        self.logger.record("train/policy_entropy", float(entropy))
+        self.logger.record("train/inverse_temperature", float(self.policy.inverse_temperature))
+
+    def policy_improvement(self, value_weights: torch.Tensor, states: torch.Tensor | None = None) -> None:
+        """Policy improvement (:meth:`CMEPolicy.improve`), on the linear weights of Q (zero-padded,
+        no history): Q_k = (1 - omega) Q_{k-1} + omega Q^_k and pi_{k+1} = greedy(Q_k), or with
+        ``improvement.method="soft"`` the average Qbar_k of the Q^_j and pi_{k+1} = softmax(beta_k Qbar_k).
 
         :param value_weights: (p,) w_k from :meth:`policy_evaluation`
+        :param states: (|C|, obs_dim) the collection C, where the soft improvement measures the
+            spread of Q for beta_k (None: a fresh collection is drawn when needed)
         """
         with self._timed("policy_improvement"):
-            self.policy.improve(value_weights, self.gamma, self.omega)
+            if states is None and self.policy.soft and self.improvement_config.scale == "spread":
+                states = self.draw_collection()
+            self.policy.improve(value_weights, self.gamma, self.omega, states)
 
     # ------------------------------------------------------------------ logging
     def _announce_settings(self) -> None:

@@ -1,4 +1,5 @@
-"""Policy evaluation (paper eq. (7)) and smoothed policy improvement (section 2.2).
+"""Policy evaluation (paper eq. (7)), smoothed policy improvement (section 2.2) and the soft
+(KL-regularised) policy of :class:`~cme_agent.config.ImprovementConfig`.
 
 Shapes: n = |C| states in the collection, p = width of phi, q = width of psi.
 
@@ -171,3 +172,59 @@ def smooth(previous: torch.Tensor, estimate: torch.Tensor, omega: float) -> torc
     """
     padded = torch.nn.functional.pad(previous, (0, estimate.shape[0] - previous.shape[0]))
     return (1 - omega) * padded + omega * estimate
+
+
+SPREAD_FLOOR = 1e-6
+"""The spread of Q over the candidates is floored at this fraction of Q's root-mean-square size
+(and at 1e-12): a Q that does not depend on the action gives the uniform policy, and its float
+rounding is not amplified into preferences."""
+
+
+def softmax_policy(values: torch.Tensor, inverse_temperature: torch.Tensor | float) -> torch.Tensor:
+    """The soft policy ``pi(a|s) = exp(beta Q(s, a) - logsumexp_b beta Q(s, b))`` over candidates.
+
+    Computed from ``Q - max_a Q`` (the logsumexp shift), so it is exact for any beta >= 0,
+    beta = inf included: then pi is uniform over the maximisers, the greedy policy.
+
+    :param values: (N, K) Q at every state and candidate action
+    :param inverse_temperature: beta >= 0, a float or a 0-dim tensor
+    :return: (N, K) probabilities, each row on the simplex
+    """
+    shifted = values - values.amax(dim=1, keepdim=True)
+    logits = torch.where(shifted == 0, torch.zeros_like(shifted), shifted * inverse_temperature)  # no 0 * inf
+    return torch.softmax(logits, dim=1)
+
+
+def action_spread(values: torch.Tensor) -> torch.Tensor:
+    """The spread of Q over the candidate actions, ``sigma = sqrt(mean_s var_a Q(s, a))`` (the
+    standard deviation over the candidates, root-mean-square over the states), floored at
+    :data:`SPREAD_FLOOR` times the root-mean-square of Q: the scale of beta with
+    ``improvement.scale="spread"``.
+
+    :param values: (N, K) Q at states and candidate actions
+    :return: 0-dim tensor sigma > 0
+    """
+    spread = values.var(dim=1, unbiased=False).mean().sqrt()
+    floor = (SPREAD_FLOOR * values.square().mean().sqrt()).clamp_min(1e-12)
+    return torch.maximum(spread, floor)
+
+
+def expected_candidate_features(
+    state_factor: torch.Tensor,
+    action_factor: torch.Tensor,
+    probabilities: torch.Tensor,
+    out: torch.Tensor | None = None,
+    scratch: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """``E_pi[psi(s, A)] = sum_a pi(a|s) psi(s, a) = S(s) * (pi(s) @ A)`` for the factorised psi
+    (psi(s, a)[j] = S[s, j] A[a, j]): one (N, K) x (K, q) product, as greedy's gather costs.
+
+    :param state_factor: (N, q) S
+    :param action_factor: (K, q) A at the candidates
+    :param probabilities: (N, K) pi(a|s)
+    :param out: (N, q) buffer for the result, or None
+    :param scratch: (N, q) buffer for pi @ A, or None
+    :return: (N, q)
+    """
+    mixed = torch.mm(probabilities, action_factor) if scratch is None else torch.mm(probabilities, action_factor, out=scratch)
+    return torch.mul(state_factor, mixed) if out is None else torch.mul(state_factor, mixed, out=out)

@@ -1,4 +1,5 @@
-"""CMEPolicy: the greedy policy of the smoothed Q function (paper section 2.2).
+"""CMEPolicy: the greedy policy of the smoothed Q function (paper section 2.2), or the soft
+policy of KL-regularised policy iteration (:class:`~cme_agent.config.ImprovementConfig`).
 
 ``Q_k(s, a) = r(s, a) + <theta_phi, phi(s)> + <theta_psi, psi(s, a)>``, where r is the known
 step reward and the weights accumulate gamma <w, B psi>, the expected terminal bonus and a
@@ -8,6 +9,10 @@ submodule ``dynamics``. Acting greedily costs O(q) per candidate action, whateve
 
 theta_psi may be shorter than q: features added since the last improvement have weight 0
 in Q (the zero-padding of docs/design.md), so Q reads only the first ``len(theta_psi)`` of them.
+
+With ``improvement.method="soft"`` the same weights hold the average Qbar_k = (1/k) sum_j Q^_j of
+the k estimates so far (the running sum is k Qbar_k: the same zero-padding, no history), and
+the policy is pi(a|s) = softmax_a(beta_k Qbar_k(s, a)) over the candidates (:meth:`CMEPolicy.soft_step`).
 """
 
 from __future__ import annotations
@@ -24,11 +29,14 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import PyTorchObs
 from stable_baselines3.common.utils import is_vectorized_observation
 
-from cme_agent.config import ActionSearchConfig, EvaluationConfig, ObservationConfig, build_config
+from cme_agent.config import ActionSearchConfig, EvaluationConfig, ImprovementConfig, ObservationConfig, build_config
 from cme_agent.dynamics.cme import CMEDynamics, PhiSpec
 from cme_agent.kernel_bank import kernel_from_points, kernel_points, resize_buffers
-from cme_agent.planning import smooth
+from cme_agent.planning import action_spread, expected_candidate_features, smooth, softmax_policy
 from cme_agent.rewards import RewardSpec
+
+SPREAD_STATES = 1024
+"""States of C (evenly strided) on which the spread of Q over the candidates is measured, for beta."""
 
 BLOCK_ELEMENTS = 2**18
 """Elements (1 MiB of float32) of one block of rows of the state factor in :meth:`CMEPolicy.greedy_step`."""
@@ -56,6 +64,24 @@ class GreedyStep:
     psi: torch.Tensor
 
 
+@dataclass
+class SoftStep:
+    """The soft policy at a batch of states, with the expectations its evaluation needs.
+
+    :param probabilities: (N, K) pi(a|s) over the candidates
+    :param values: (N,) E_pi[Qbar_k(s, A)]
+    :param phi: (N, p) phi(s)
+    :param psi: (N, q) E_pi[psi(s, A)] = S(s) * (pi(s) @ A)
+    :param step_rewards: (N,) E_pi[step_reward(s, A)]
+    """
+
+    probabilities: torch.Tensor
+    values: torch.Tensor
+    phi: torch.Tensor
+    psi: torch.Tensor
+    step_rewards: torch.Tensor
+
+
 class CMEPolicy(BasePolicy):
     """Greedy policy over candidate actions of the smoothed Q function.
 
@@ -69,6 +95,8 @@ class CMEPolicy(BasePolicy):
     :param feature_dynamics: the model regresses phi~(s') - phi(s) (section 2.3)
     :param reward: the known reward; None: the model learns it
     :param evaluation: the evaluation settings, for the memory check of phi (None: defaults)
+    :param improvement: the improvement step (:class:`ImprovementConfig` or dict; None: the
+        paper's smoothed greedy step)
     """
 
     def __init__(
@@ -83,10 +111,17 @@ class CMEPolicy(BasePolicy):
         feature_dynamics: bool = True,
         reward: RewardSpec | None = None,
         evaluation: EvaluationConfig | None = None,
+        improvement: ImprovementConfig | dict[str, Any] | None = None,
     ) -> None:
         super().__init__(observation_space, action_space, squash_output=False)
         self.phi_spec = phi
         self.action_search = build_config(ActionSearchConfig, action_search, "action_search")
+        self.improvement = build_config(ImprovementConfig, improvement, "improvement")
+        if self.soft and isinstance(action_space, spaces.Box) and self.action_search.refine_steps > 0:
+            raise ValueError(
+                f"action_search.refine_steps={self.action_search.refine_steps} is invalid with improvement.method='soft': "
+                "must be 0 (the soft policy is a distribution over the fixed candidates; refined actions are not among them)"
+            )
         self.candidate_seed = candidate_seed
         self.observation_config = build_config(ObservationConfig, observation, "observation")
         self.dynamics = CMEDynamics(
@@ -94,6 +129,9 @@ class CMEPolicy(BasePolicy):
         )
         self.register_buffer("theta_phi", torch.zeros(self.dynamics.p))
         self.register_buffer("theta_psi", torch.zeros(0))
+        # soft improvement only: n_k, the (decayed) count of estimates averaged, and beta_k on Qbar_k
+        self.register_buffer("improvements", torch.zeros(()))
+        self.register_buffer("inverse_temperature", torch.zeros(()))
         self.register_buffer("candidates", self._make_candidates())
         self._candidate_factor: tuple[tuple[int, int], torch.Tensor] | None = None
         self._weighted_candidates: tuple[torch.Tensor, tuple[int, int], torch.Tensor] | None = None
@@ -127,11 +165,20 @@ class CMEPolicy(BasePolicy):
             action_search=self.action_search,
             candidate_seed=self.candidate_seed,
             feature_dynamics=self.dynamics.feature_dynamics,
+            improvement=self.improvement,
         )
         return data
 
+    @property
+    def soft(self) -> bool:
+        """Whether the policy is the soft policy of KL-regularised policy iteration."""
+        return self.improvement.method == "soft"
+
     def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
         resize_buffers(self, state_dict, prefix, {"theta_psi": 0})
+        for name in ("improvements", "inverse_temperature"):  # files written before the soft improvement
+            if prefix + "theta_phi" in state_dict:
+                state_dict.setdefault(prefix + name, torch.zeros((), device=state_dict[prefix + "theta_phi"].device))
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     # ------------------------------------------------------------------ Q
@@ -206,6 +253,43 @@ class CMEPolicy(BasePolicy):
                 torch.mul(kernel_from_points(points[rows], state_weights), refined_factor[rows], out=psi[rows])
         return GreedyStep(actions, values, phi, psi)
 
+    def soft_step(self, obs: torch.Tensor, psi_out: torch.Tensor | None = None) -> SoftStep:
+        """pi_{k+1}(a|s) = softmax_a(beta_k Qbar_k(s, a)) over the candidates (proportional to
+        exp(beta_k / k sum_{j<=k} Q^_j(s, a))), with what evaluating it needs: phi(s), the
+        expected psi ``E_pi[psi(s, A)] = S(s) * (pi(s) @ A)`` (the factorised psi: one
+        (N, K) x (K, q) product, as greedy's gather costs) and the expected step reward. S is
+        built in blocks of rows as in :meth:`greedy_step`, each used before the next.
+
+        :param obs: (N, obs_dim) observations
+        :param psi_out: (N, q) buffer for E_pi[psi(s, A)] (memory reused between calls), or None
+        """
+        dynamics, n, q_used = self.dynamics, obs.shape[0], self.theta_psi.shape[0]
+        phi = dynamics.phi(obs)
+        points, state_weights = kernel_points(dynamics.obs_encoder.normalize(obs)), dynamics.psi.state_weights()
+        factor = self.candidate_factor()
+        weighted = factor[:, :q_used] * self.theta_psi
+        step_rewards = self._candidate_step_rewards(obs)
+        values = step_rewards + (phi @ self.theta_phi).unsqueeze(1)  # (N, K), completed block by block
+        probabilities = torch.empty_like(values)
+        psi = obs.new_empty(n, dynamics.q) if psi_out is None else psi_out
+        blocks = _row_blocks(n, dynamics.q)
+        state_buffer, mixed = obs.new_empty(2, blocks[0].stop if blocks else 0, dynamics.q).unbind(0)
+        for rows in blocks:
+            length = rows.stop - rows.start
+            state = kernel_from_points(points[rows], state_weights, out=state_buffer[:length])
+            values[rows] = torch.addmm(values[rows], state[:, :q_used], weighted.T)
+            probabilities[rows] = softmax_policy(values[rows], self.inverse_temperature)
+            expected_candidate_features(state, factor, probabilities[rows], out=psi[rows], scratch=mixed[:length])
+        return SoftStep(probabilities, (probabilities * values).sum(1), phi, psi, (probabilities * step_rewards).sum(1))
+
+    def probabilities(self, obs: torch.Tensor) -> torch.Tensor:
+        """The soft policy pi(a|s) over the candidates (without Q's state-only term, which does
+        not change it): (N, obs_dim) -> (N, K)."""
+        q_used = self.theta_psi.shape[0]
+        weighted = self.candidate_factor()[:, :q_used] * self.theta_psi
+        state = self.dynamics.state_factor(obs)[:, :q_used]
+        return softmax_policy(torch.addmm(self._candidate_step_rewards(obs), state, weighted.T), self.inverse_temperature)
+
     def _candidate_step_rewards(self, obs: torch.Tensor) -> torch.Tensor:
         """The known step reward at every state and candidate action: (N, obs_dim) -> (N, K)."""
         n, k = obs.shape[0], self.candidates.shape[0]
@@ -249,10 +333,23 @@ class CMEPolicy(BasePolicy):
             torch.addmm(self._candidate_step_rewards(obs), state, self.weighted_candidates().T).argmax(dim=1)
         ]
 
+    def sample(self, obs: torch.Tensor) -> torch.Tensor:
+        """Candidate actions drawn from the soft policy pi(.|s) (torch's default generator).
+
+        :param obs: (N, obs_dim) observations
+        :return: (N, act_dim) Box actions in env units or (N,) Discrete indices
+        """
+        return self.candidates[torch.multinomial(self.probabilities(obs), 1).squeeze(1)]
+
+    def _act(self, obs: torch.Tensor, deterministic: bool) -> torch.Tensor:
+        """The greedy action, or with the soft improvement and ``deterministic=False`` a draw from pi."""
+        return self.sample(obs) if self.soft and not deterministic else self.act(obs)
+
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> torch.Tensor:
-        """The greedy action (the policy is deterministic; exploration belongs to learn())."""
+        """The greedy action; with the soft improvement and ``deterministic=False``, a draw from pi
+        (exploration belongs to learn())."""
         assert isinstance(observation, torch.Tensor)
-        return self.act(observation.float())
+        return self._act(observation.float(), deterministic)
 
     def predict(
         self,
@@ -268,7 +365,8 @@ class CMEPolicy(BasePolicy):
         :param observation: the observation(s)
         :param state: unused (no recurrent state); returned as given
         :param episode_start: unused
-        :param deterministic: unused: the policy is deterministic
+        :param deterministic: with the soft improvement, False draws the action from pi (True:
+            the argmax of the summed Q); the smoothed greedy policy is deterministic either way
         :return: the action(s) and ``state``
         """
         if isinstance(observation, tuple) and len(observation) == 2 and isinstance(observation[1], dict):
@@ -276,19 +374,52 @@ class CMEPolicy(BasePolicy):
         obs = np.asarray(observation, dtype=np.float32)
         vectorized = is_vectorized_observation(obs, self.observation_space)
         with torch.no_grad():
-            actions = self.act(torch.as_tensor(obs.reshape(-1, *self.observation_space.shape), device=self.device))
+            actions = self._act(
+                torch.as_tensor(obs.reshape(-1, *self.observation_space.shape), device=self.device), deterministic
+            )
         actions = actions.cpu().numpy().reshape((-1, *self.action_space.shape))
         return (actions if vectorized else actions.squeeze(axis=0)), state
 
     # ------------------------------------------------------------------ improvement
-    def improve(self, value_weights: torch.Tensor, gamma: float, omega: float) -> None:
-        """Policy improvement: Q_k = (1 - omega) Q_{k-1} + omega Q^_k on the linear weights of Q,
-        ``Q^_k(s, a) = r(s, a) + gamma <w_k, E_model[phi~(S') | s, a]>``; pi_{k+1} = greedy(Q_k).
+    def improve(self, value_weights: torch.Tensor, gamma: float, omega: float, states: torch.Tensor | None = None) -> None:
+        """Policy improvement on the linear weights of Q, with
+        ``Q^_k(s, a) = r(s, a) + gamma <w_k, E_model[phi~(S') | s, a]>``:
+
+        - smoothed greedy (section 2.2): Q_k = (1 - omega) Q_{k-1} + omega Q^_k; pi_{k+1} = greedy(Q_k);
+        - soft (KL-regularised): n_k = decay n_{k-1} + 1, Qbar_k = Qbar_{k-1} + (Q^_k - Qbar_{k-1}) / n_k,
+          so the running sum n_k Qbar_k = sum_j decay^{k-j} Q^_j, zero-padded as psi grows;
+          pi_{k+1} = softmax(beta_k Qbar_k) (:meth:`soft_step`).
 
         :param value_weights: (p,) w_k from policy evaluation (eq. (7))
         :param gamma: discount factor
-        :param omega: smoothing step in (0, 1]
+        :param omega: smoothing step in (0, 1] (smoothed greedy only)
+        :param states: (N, obs_dim) states where the spread of Qbar_k over the candidates is
+            measured (soft with ``scale="spread"``: the collection C; an even stride of
+            :data:`SPREAD_STATES` of them is used)
         """
         theta_phi, theta_psi = self.dynamics.backup_weights(value_weights, gamma)
-        self.theta_phi = smooth(self.theta_phi, theta_phi, omega)
-        self.theta_psi = smooth(self.theta_psi, theta_psi, omega)
+        if not self.soft:
+            self.theta_phi = smooth(self.theta_phi, theta_phi, omega)
+            self.theta_psi = smooth(self.theta_psi, theta_psi, omega)
+            return
+        self.improvements.mul_(self.improvement.decay).add_(1)  # n_k = decay n_{k-1} + 1
+        step = 1.0 / float(self.improvements)
+        self.theta_phi = smooth(self.theta_phi, theta_phi, step)
+        self.theta_psi = smooth(self.theta_psi, theta_psi, step)
+        self.inverse_temperature = self._inverse_temperature(states)
+
+    def _inverse_temperature(self, states: torch.Tensor | None) -> torch.Tensor:
+        """beta_k = beta n_k / sigma(Qbar_k) (``scale="spread"``, sigma from :func:`action_spread` on
+        the states) or beta n_k (``"fixed"``): pi_{k+1} proportional to exp(beta_k / n_k sum_j decay^{k-j} Q^_j).
+
+        :param states: (N, obs_dim) states for the spread (needed with ``scale="spread"``)
+        :return: 0-dim tensor beta_k
+        """
+        config = self.improvement
+        beta_sum = torch.as_tensor(config.beta, dtype=self.theta_phi.dtype, device=self.device) * self.improvements
+        if config.scale == "fixed":
+            return beta_sum
+        if states is None:
+            raise ValueError('improvement.scale="spread" measures Q on states: pass states= to improve()')
+        stride = max(1, states.shape[0] // SPREAD_STATES)
+        return beta_sum / action_spread(self.candidate_q_values(states[::stride][:SPREAD_STATES]))

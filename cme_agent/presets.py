@@ -2,7 +2,7 @@
 
 A preset is a nested dict of constructor arguments of :class:`~cme_agent.CMEPolicyIteration`
 (``gamma``, ``omega``, ``steps_per_iteration``, the groups ``feature_selection``,
-``model_update``, ``evaluation``, ``exploration`` and ``policy_kwargs`` with ``phi``,
+``model_update``, ``evaluation``, ``exploration``, ``improvement`` and ``policy_kwargs`` with ``phi``,
 ``observation`` and ``action_search``). It holds the measured settings of an env and the facts
 about its observation (angle pairs, finite bounds where the space has none). The user's
 arguments override any key of it (:func:`merge_settings`); the Hydra configs read the same
@@ -22,6 +22,7 @@ from cme_agent.config import (
     EvaluationConfig,
     ExplorationConfig,
     FeatureSelectionConfig,
+    ImprovementConfig,
     ModelUpdateConfig,
     ObservationConfig,
     StateFeatureConfig,
@@ -33,6 +34,7 @@ GROUPS: dict[str, type] = {
     "model_update": ModelUpdateConfig,
     "evaluation": EvaluationConfig,
     "exploration": ExplorationConfig,
+    "improvement": ImprovementConfig,
 }
 """Config groups of the constructor and their dataclasses."""
 

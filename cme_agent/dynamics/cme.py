@@ -217,8 +217,18 @@ class CMEDynamics(nn.Module):
         :param psi: (N, q) psi(s, a)
         :return: (N,)
         """
+        return self.reward.step_reward(obs, actions) + self.linear_reward(phi, psi)
+
+    def linear_reward(self, phi: torch.Tensor, psi: torch.Tensor) -> torch.Tensor:
+        """The model's part of the expected reward, ``<c_phi, phi(s)> + <c_psi, psi(s, a)>``
+        (:meth:`reward_weights`); linear, so at E_pi[psi(s, A)] it is the expectation under pi.
+
+        :param phi: (N, p) phi(s)
+        :param psi: (N, q) psi(s, a), or its expectation under a policy
+        :return: (N,)
+        """
         c_phi, c_psi = self.reward_weights()
-        return self.reward.step_reward(obs, actions) + phi @ c_phi + psi @ c_psi
+        return phi @ c_phi + psi @ c_psi
 
     def backup_weights(self, value_weights: torch.Tensor, gamma: float) -> tuple[torch.Tensor, torch.Tensor]:
         """The linear weights of ``Q^(s, a) = r(s, a) + gamma <w, E_model[phi~(S') | s, a]>``
