@@ -232,14 +232,10 @@ class CMEPolicy(BasePolicy):
         :param psi_out: (N, q) buffer for psi(s, pi(s)) (memory reused between calls), or None
         """
         dynamics, n, q_used = self.dynamics, obs.shape[0], self.theta_psi.shape[0]
-        phi = dynamics.phi(obs)
-        points, state_weights = kernel_points(dynamics.obs_encoder.normalize(obs)), dynamics.psi.state_weights()
-        factor, weighted = self.candidate_factor(), self.weighted_candidates()
+        phi, points, psi, blocks, (state_buffer, gathered) = self._blocked_inputs(obs, psi_out)
+        state_weights, factor, weighted = dynamics.psi.state_weights(), self.candidate_factor(), self.weighted_candidates()
         base = self._candidate_step_rewards(obs) + (phi @ self.theta_phi).unsqueeze(1)
         values, best = base.new_empty(n), torch.empty(n, dtype=torch.long, device=obs.device)
-        psi = obs.new_empty(n, dynamics.q) if psi_out is None else psi_out
-        blocks = _row_blocks(n, dynamics.q)
-        state_buffer, gathered = obs.new_empty(2, blocks[0].stop if blocks else 0, dynamics.q).unbind(0)
         for rows in blocks:
             length = rows.stop - rows.start
             state = kernel_from_points(points[rows], state_weights, out=state_buffer[:length])
@@ -263,17 +259,16 @@ class CMEPolicy(BasePolicy):
         :param obs: (N, obs_dim) observations
         :param psi_out: (N, q) buffer for E_pi[psi(s, A)] (memory reused between calls), or None
         """
-        dynamics, n, q_used = self.dynamics, obs.shape[0], self.theta_psi.shape[0]
-        phi = dynamics.phi(obs)
-        points, state_weights = kernel_points(dynamics.obs_encoder.normalize(obs)), dynamics.psi.state_weights()
-        factor = self.candidate_factor()
-        weighted = factor[:, :q_used] * self.theta_psi
+        q_used = self.theta_psi.shape[0]
+        phi, points, psi, blocks, (state_buffer, mixed) = self._blocked_inputs(obs, psi_out)
+        state_weights, factor, weighted = (
+            self.dynamics.psi.state_weights(),
+            self.candidate_factor(),
+            self.weighted_candidates(),
+        )
         step_rewards = self._candidate_step_rewards(obs)
         values = step_rewards + (phi @ self.theta_phi).unsqueeze(1)  # (N, K), completed block by block
         probabilities = torch.empty_like(values)
-        psi = obs.new_empty(n, dynamics.q) if psi_out is None else psi_out
-        blocks = _row_blocks(n, dynamics.q)
-        state_buffer, mixed = obs.new_empty(2, blocks[0].stop if blocks else 0, dynamics.q).unbind(0)
         for rows in blocks:
             length = rows.stop - rows.start
             state = kernel_from_points(points[rows], state_weights, out=state_buffer[:length])
@@ -289,6 +284,19 @@ class CMEPolicy(BasePolicy):
         weighted = self.candidate_factor()[:, :q_used] * self.theta_psi
         state = self.dynamics.state_factor(obs)[:, :q_used]
         return softmax_policy(torch.addmm(self._candidate_step_rewards(obs), state, weighted.T), self.inverse_temperature)
+
+    def _blocked_inputs(
+        self, obs: torch.Tensor, psi_out: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[slice], tuple[torch.Tensor, ...]]:
+        """What :meth:`greedy_step` and :meth:`soft_step` build before their loop over blocks of
+        rows: phi(s) (N, p), the state factor's points operand (N, state_dim + 2), the (N, q)
+        output for psi, the blocks, and two (block, q) scratch buffers reused by every block."""
+        q = self.dynamics.q
+        points = kernel_points(self.dynamics.obs_encoder.normalize(obs))
+        psi = obs.new_empty(obs.shape[0], q) if psi_out is None else psi_out
+        blocks = _row_blocks(obs.shape[0], q)
+        buffers = obs.new_empty(2, blocks[0].stop if blocks else 0, q).unbind(0)
+        return self.dynamics.phi(obs), points, psi, blocks, buffers
 
     def _candidate_step_rewards(self, obs: torch.Tensor) -> torch.Tensor:
         """The known step reward at every state and candidate action: (N, obs_dim) -> (N, K)."""
