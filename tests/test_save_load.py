@@ -1,5 +1,8 @@
 """save() -> load() after the feature bank has grown."""
 
+import os
+import stat
+
 import numpy as np
 import pytest
 
@@ -46,3 +49,19 @@ def test_user_reward_must_be_given_again(tmp_path, pendulum_kwargs):
     with pytest.raises(ValueError, match="reward_fn"):
         CMEPolicyIteration.load(tmp_path / "m.zip")
     assert CMEPolicyIteration.load(tmp_path / "m.zip", reward_fn=reward).reward_source == "user"
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o077])
+def test_saved_files_follow_the_umask(tmp_path, pendulum_kwargs, umask):
+    """model.zip and checkpoint.zip get 0666 less the umask (0644 under the usual 022), not mkstemp's 0600."""
+    model = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=0, **pendulum_kwargs)
+    previous = os.umask(umask)
+    try:
+        model.save(tmp_path / "model.zip")
+        model.save(tmp_path / "checkpoint.zip", include=["replay_buffer"])
+        model.save(tmp_path / "model.zip")  # replacing a file keeps the rule
+    finally:
+        os.umask(previous)
+    for name in ("model.zip", "checkpoint.zip"):
+        assert stat.S_IMODE((tmp_path / name).stat().st_mode) == 0o666 & ~umask, name
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint.zip", "model.zip"]  # no temporary left
