@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import json
+import shlex
+import signal
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -14,12 +17,39 @@ from omegaconf import DictConfig, OmegaConf
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
-from stable_baselines3.common.logger import configure
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import VecEnv
 
-import cme_agent  # noqa: F401  (registers the custom envs)
-from cme_agent.callbacks import IterationCheckpoint
+from cme_agent.algorithm import CMEPolicyIteration
+from cme_agent.callbacks import (
+    EpisodeReturnsByBehaviour,
+    IterationCheckpoint,
+    PeriodicEvaluation,
+    StopOnSignal,
+    TrainingAbandonedError,
+)
+from cme_agent.run_log import configure_run_logger
+
+# SIGINT: Ctrl-C; SIGTERM: kill's default and SLURM's preemption; SIGUSR2: submitit_slurm's warning
+# signal_delay_s before the time limit
+STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGUSR2") if hasattr(signal, name))
+
+
+def resume_run_dir(resume: str | None, default: str) -> str:
+    """``hydra.run.dir`` of conf/config.yaml (resolver ``cme_run_dir``): a run resumed from a
+    checkpoint continues in the checkpoint's folder; a new run goes to ``default``."""
+    return str(Path(resume).parent) if resume else default
+
+
+def resume_command(overrides: Sequence[str], checkpoint: Path, script: str = "train.py") -> str:
+    """The shell command that resumes a run: ``script`` with the run's overrides and ``resume=checkpoint``.
+
+    :param overrides: the command-line overrides of the run (Hydra's ``overrides.task``)
+    :param checkpoint: the checkpoint to resume from
+    :param script: the Hydra app, as it was invoked
+    """
+    kept = [item for item in overrides if item.split("=", 1)[0].lstrip("+~") != "resume"]
+    return shlex.join(["python", script, *kept, f"resume={checkpoint}"])
 
 
 def make_env(cfg: DictConfig) -> VecEnv:
@@ -68,12 +98,20 @@ def evaluate(model: BaseAlgorithm, cfg: DictConfig) -> tuple[float, float]:
     return float(mean), float(std)
 
 
-def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
-    """Train the agent of ``cfg`` on its env, evaluate it, and write into ``run_dir`` the
-    TensorBoard events, ``progress.csv``, ``model.zip`` and ``summary.json``.
+def run(cfg: DictConfig, run_dir: Path, overrides: Sequence[str] = (), script: str = "train.py") -> dict[str, Any]:
+    """Train the agent of ``cfg`` on its env, evaluating it every ``cfg.eval_every`` steps and at
+    the end, and write into ``run_dir`` the TensorBoard events, ``progress.csv``,
+    ``evaluations.npz``, ``model.zip`` and ``summary.json``.
+
+    SIGINT, SIGTERM or SIGUSR2 stop training at the end of the iteration under way (a second one at once):
+    the checkpoint, ``model.zip`` and a summary marked ``"interrupted": true`` are written, the
+    command that resumes is printed, and the process exits with status 128 + the signal number.
+    A run resumed from a checkpoint of ``run_dir`` continues its logs and evaluation curve.
 
     :param cfg: the composed config (conf/config.yaml)
     :param run_dir: the run directory
+    :param overrides: the run's command-line overrides (for the resume command)
+    :param script: the Hydra app as invoked (for the resume command)
     :return: the summary
     """
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -81,38 +119,90 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         torch.set_num_threads(cfg.torch_threads)
     env = make_env(cfg)
     model = resume_agent(cfg, env) if cfg.resume else build_agent(cfg, env)
-    formats = ["stdout", "csv", "tensorboard"] if cfg.verbose else ["csv", "tensorboard"]
-    model.set_logger(configure(str(run_dir), formats))
-    callbacks = [IterationCheckpoint(run_dir / "checkpoint.zip", cfg.checkpoint_every)] if cfg.checkpoint_every else []
+    model.set_logger(configure_run_logger(run_dir, cfg.verbose, model.num_timesteps if cfg.resume else None))
+    try:
+        evaluation = PeriodicEvaluation(
+            lambda: make_eval_env(cfg), cfg.eval_every, cfg.eval_episodes, log_path=run_dir / "evaluations.npz"
+        )
+        periodic = [IterationCheckpoint(run_dir / "checkpoint.zip", cfg.checkpoint_every)] if cfg.checkpoint_every else []
+    except ValueError as error:
+        raise SystemExit(f"Invalid configuration: {error}") from error
+    by_behaviour = [EpisodeReturnsByBehaviour()] if isinstance(model, CMEPolicyIteration) else []
+    stop = StopOnSignal(run_dir / "checkpoint.zip", STOP_SIGNALS, restore_on_training_end=False)
     start = time.perf_counter()
-    model.learn(
-        total_timesteps=cfg.total_timesteps - model.num_timesteps,
-        callback=callbacks,
-        progress_bar=cfg.progress_bar,
-        reset_num_timesteps=not cfg.resume,
+    try:
+        model.learn(
+            total_timesteps=cfg.total_timesteps - model.num_timesteps,
+            callback=[evaluation, *by_behaviour, *periodic, stop],
+            progress_bar=cfg.progress_bar,
+            reset_num_timesteps=not cfg.resume,
+        )
+        train_seconds = time.perf_counter() - start
+        model.save(run_dir / "model.zip")
+        if not stop.stopped and (not evaluation.evaluations or evaluation.evaluations[-1].timesteps != model.num_timesteps):
+            evaluation.evaluate()
+    except TrainingAbandonedError as abandoned:
+        summary = _summary(cfg, model, run_dir, evaluation, time.perf_counter() - start, interrupted=True)
+        _report_interruption(summary, abandoned.signum, run_dir, overrides, script, abandoned=True)
+        raise SystemExit(128 + abandoned.signum) from None
+    finally:
+        stop.restore()
+        env.close()
+    summary = _summary(cfg, model, run_dir, evaluation, train_seconds, interrupted=stop.stopped)
+    if stop.stopped:
+        summary["total_timesteps"] = stop.checkpoint_steps
+        _report_interruption(summary, stop.received, run_dir, overrides, script, abandoned=False)
+        raise SystemExit(128 + stop.received)
+    print(
+        f"{cfg.env.id} seed {cfg.seed}: return {summary['eval_mean_reward']:.1f} +- {summary['eval_std_reward']:.1f} "
+        f"over {cfg.eval_episodes} episodes after {model.num_timesteps} steps ({train_seconds:.0f} s); run dir {run_dir}"
     )
-    train_seconds = time.perf_counter() - start
-    model.save(run_dir / "model.zip")
-    mean, std = evaluate(model, cfg)
-    model.logger.record("eval/mean_reward", mean)
-    model.logger.record("eval/std_reward", std)
-    model.logger.dump(step=model.num_timesteps)
+    return summary
+
+
+def _summary(
+    cfg: DictConfig,
+    model: BaseAlgorithm,
+    run_dir: Path,
+    evaluation: PeriodicEvaluation,
+    train_seconds: float,
+    interrupted: bool,
+) -> dict[str, Any]:
+    """Write and return ``summary.json``: the last evaluation, the whole evaluation curve, the run's facts."""
+    last = evaluation.evaluations[-1] if evaluation.evaluations else None
     summary = {
         "env": cfg.env.id,
         "agent": type(model).__name__,
         "seed": cfg.seed,
         "total_timesteps": model.num_timesteps,
         "eval_episodes": cfg.eval_episodes,
-        "eval_mean_reward": mean,
-        "eval_std_reward": std,
+        "eval_mean_reward": last.mean_reward if last else None,
+        "eval_std_reward": last.std_reward if last else None,
+        "evaluations": [item.as_dict() for item in evaluation.evaluations],
         "train_seconds": train_seconds,
         "n_features": getattr(model, "n_features", None),
+        "interrupted": interrupted,
         "run_dir": str(run_dir),
     }
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
-    print(
-        f"{cfg.env.id} seed {cfg.seed}: return {mean:.1f} +- {std:.1f} over {cfg.eval_episodes} episodes "
-        f"after {model.num_timesteps} steps ({train_seconds:.0f} s); run dir {run_dir}"
-    )
-    env.close()
     return summary
+
+
+def _report_interruption(
+    summary: dict[str, Any], signum: int, run_dir: Path, overrides: Sequence[str], script: str, abandoned: bool
+) -> None:
+    """Mark the summary interrupted, name the checkpoint and print the command that resumes from it."""
+    checkpoint = run_dir / "checkpoint.zip"
+    name, steps = signal.Signals(signum).name, summary["total_timesteps"]
+    if abandoned:
+        what = f"{name} received twice: training abandoned mid-iteration at {steps} steps; wrote summary.json"
+    else:
+        what = f"{name} received: stopped at {steps} steps; wrote checkpoint.zip, model.zip and summary.json"
+    summary["checkpoint"] = str(checkpoint) if checkpoint.exists() else None
+    summary["resume_command"] = resume_command(overrides, checkpoint, script) if checkpoint.exists() else None
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    print(f"{what} in {run_dir}")
+    if summary["resume_command"]:
+        print(f"resume (from this directory) with:\n  {summary['resume_command']}")
+    else:
+        print("no checkpoint was written yet: nothing to resume from")
