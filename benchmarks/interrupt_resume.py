@@ -122,7 +122,7 @@ def main() -> None:
     total = int(compose_config(args.overrides).total_timesteps)
     interrupt_at = args.interrupt_at or total // 2
     runs = RESULTS / "interrupt_resume_runs" / args.stem
-    start = time.perf_counter()
+    command, start = command_line(), time.perf_counter()  # the code version the runs start with
     with ThreadPoolExecutor(args.workers) as pool:
         plain_jobs = {s: pool.submit(uninterrupted, runs / f"uninterrupted_{s}", s, args.overrides) for s in args.seeds}
         resumed_jobs = {
@@ -144,7 +144,7 @@ def main() -> None:
         [
             f"# Interrupted and resumed vs uninterrupted ({total} steps, SIGINT at {interrupt_at})",
             "",
-            f"Command: `{command_line()}`; {time.perf_counter() - start:.0f} s.",
+            f"Command: `{command}`; {time.perf_counter() - start:.0f} s.",
             "",
             markdown_table(header, rows),
             "",
