@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import shlex
 import signal
 import time
@@ -29,6 +30,8 @@ from cme_agent.callbacks import (
     TrainingAbandonedError,
 )
 from cme_agent.run_log import configure_run_logger
+
+log = logging.getLogger(__name__)  # under Hydra: stdout and the run directory's train.log
 
 # SIGINT: Ctrl-C; SIGTERM: kill's default and SLURM's preemption; SIGUSR2: submitit_slurm's warning
 # signal_delay_s before the time limit
@@ -77,7 +80,7 @@ def resume_agent(cfg: DictConfig, env: VecEnv) -> BaseAlgorithm:
         raise SystemExit(
             f"the checkpoint {cfg.resume} already has {model.num_timesteps} >= total_timesteps={cfg.total_timesteps} steps"
         )
-    print(f"resuming from {cfg.resume} at {model.num_timesteps} steps")
+    log.info(f"resuming from {cfg.resume} at {model.num_timesteps} steps")
     return model
 
 
@@ -153,7 +156,7 @@ def run(cfg: DictConfig, run_dir: Path, overrides: Sequence[str] = (), script: s
         summary["total_timesteps"] = stop.checkpoint_steps
         _report_interruption(summary, stop.received, run_dir, overrides, script, abandoned=False)
         raise SystemExit(128 + stop.received)
-    print(
+    log.info(
         f"{cfg.env.id} seed {cfg.seed}: return {summary['eval_mean_reward']:.1f} +- {summary['eval_std_reward']:.1f} "
         f"over {cfg.eval_episodes} episodes after {model.num_timesteps} steps ({train_seconds:.0f} s); run dir {run_dir}"
     )
@@ -201,8 +204,7 @@ def _report_interruption(
     summary["checkpoint"] = str(checkpoint) if checkpoint.exists() else None
     summary["resume_command"] = resume_command(overrides, checkpoint, script) if checkpoint.exists() else None
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
-    print(f"{what} in {run_dir}")
     if summary["resume_command"]:
-        print(f"resume (from this directory) with:\n  {summary['resume_command']}")
+        log.info(f"{what} in {run_dir}; resume (from this directory) with:\n  {summary['resume_command']}")
     else:
-        print("no checkpoint was written yet: nothing to resume from")
+        log.info(f"{what} in {run_dir}; no checkpoint was written yet: nothing to resume from")
