@@ -145,17 +145,18 @@ def run(cfg: DictConfig, run_dir: Path, overrides: Sequence[str] = (), script: s
         if not stop.stopped and (not evaluation.evaluations or evaluation.evaluations[-1].timesteps != model.num_timesteps):
             evaluation.evaluate()
     except TrainingAbandonedError as abandoned:
-        summary = _summary(cfg, model, run_dir, evaluation, time.perf_counter() - start, interrupted=True)
+        summary = _summary(cfg, model, run_dir, evaluation, time.perf_counter() - start, model.num_timesteps)
         _report_interruption(summary, abandoned.signum, run_dir, overrides, script, abandoned=True)
         raise SystemExit(128 + abandoned.signum) from None
     finally:
         stop.restore()
         env.close()
-    summary = _summary(cfg, model, run_dir, evaluation, train_seconds, interrupted=stop.stopped)
-    if stop.stopped:
-        summary["total_timesteps"] = stop.checkpoint_steps
+    if stop.stopped:  # the checkpoint's step: learn() went one env step further
+        summary = _summary(cfg, model, run_dir, evaluation, train_seconds, stop.checkpoint_steps)
         _report_interruption(summary, stop.received, run_dir, overrides, script, abandoned=False)
         raise SystemExit(128 + stop.received)
+    summary = _summary(cfg, model, run_dir, evaluation, train_seconds, model.num_timesteps, interrupted=False)
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     log.info(
         f"{cfg.env.id} seed {cfg.seed}: return {summary['eval_mean_reward']:.1f} +- {summary['eval_std_reward']:.1f} "
         f"over {cfg.eval_episodes} episodes after {model.num_timesteps} steps ({train_seconds:.0f} s); run dir {run_dir}"
@@ -169,15 +170,16 @@ def _summary(
     run_dir: Path,
     evaluation: PeriodicEvaluation,
     train_seconds: float,
-    interrupted: bool,
+    steps: int,
+    interrupted: bool = True,
 ) -> dict[str, Any]:
-    """Write and return ``summary.json``: the last evaluation, the whole evaluation curve, the run's facts."""
+    """The content of ``summary.json``: the last evaluation, the whole evaluation curve, the run's facts."""
     last = evaluation.evaluations[-1] if evaluation.evaluations else None
-    summary = {
+    return {
         "env": cfg.env.id,
         "agent": type(model).__name__,
         "seed": cfg.seed,
-        "total_timesteps": model.num_timesteps,
+        "total_timesteps": steps,
         "eval_episodes": cfg.eval_episodes,
         "eval_mean_reward": last.mean_reward if last else None,
         "eval_std_reward": last.std_reward if last else None,
@@ -187,14 +189,12 @@ def _summary(
         "interrupted": interrupted,
         "run_dir": str(run_dir),
     }
-    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
-    return summary
 
 
 def _report_interruption(
     summary: dict[str, Any], signum: int, run_dir: Path, overrides: Sequence[str], script: str, abandoned: bool
 ) -> None:
-    """Mark the summary interrupted, name the checkpoint and print the command that resumes from it."""
+    """Write the summary of an interrupted run with its checkpoint, and log the command that resumes from it."""
     checkpoint = run_dir / "checkpoint.zip"
     name, steps = signal.Signals(signum).name, summary["total_timesteps"]
     if abandoned:

@@ -108,7 +108,7 @@ def test_sigint_to_train_py_leaves_model_summary_and_a_checkpoint_to_resume(tmp_
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["interrupted"] is True
     steps = summary["total_timesteps"]
-    assert 300 < steps < 1500 and steps % 100 == 0  # an iteration boundary
+    assert 300 <= steps < 1500 and steps % 100 == 0  # an iteration boundary (at or after the signal)
     assert CMEPolicyIteration.load(run_dir / "model.zip").n_features > 0
     assert summary["checkpoint"] == str(run_dir / "checkpoint.zip")
     assert summary["resume_command"] in stdout
