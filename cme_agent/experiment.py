@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
+import numpy as np
 import torch
 from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig, OmegaConf
@@ -80,6 +81,10 @@ def resume_agent(cfg: DictConfig, env: VecEnv) -> BaseAlgorithm:
         raise SystemExit(
             f"the checkpoint {cfg.resume} already has {model.num_timesteps} >= total_timesteps={cfg.total_timesteps} steps"
         )
+    # The env's own state (its half-finished episodes, its RNG) is not in a checkpoint: the resumed
+    # run starts fresh episodes. Seed them apart from the run's first ones (cfg.seed), which it
+    # would otherwise replay; with reset_envs_each_iteration the agent reseeds the envs anyway.
+    env.seed(int(np.random.SeedSequence([cfg.seed, model.num_timesteps]).generate_state(1)[0]))
     log.info(f"resuming from {cfg.resume} at {model.num_timesteps} steps")
     return model
 
