@@ -13,12 +13,14 @@ import time
 import numpy as np
 import pytest
 import torch
+from hydra import compose, initialize_config_dir
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from cme_agent import CMEPolicyIteration
 from cme_agent.callbacks import StopOnSignal
+from cme_agent.experiment import make_env, resume_agent
 from cme_agent.run_log import configure_run_logger
 from tests.conftest import ROOT
 
@@ -169,3 +171,15 @@ def test_resumed_logs_drop_what_followed_the_checkpoint(tmp_path):
         (400, -400.0),
         (500, -500.0),
     ]
+
+
+def test_resumed_episodes_do_not_replay_the_runs_first(tmp_path, pendulum_kwargs):
+    """The env's state is not in a checkpoint: a resumed run starts fresh episodes, seeded apart from the run's first."""
+    model = CMEPolicyIteration("CMEPolicy", make_vec_env("Pendulum-v1", n_envs=1, seed=0), seed=0, **pendulum_kwargs)
+    model.learn(200)
+    model.save(tmp_path / "checkpoint.zip", include=["replay_buffer"])
+    with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
+        cfg = compose(config_name="config", overrides=["seed=0", f"resume={tmp_path / 'checkpoint.zip'}"])
+    env = make_env(cfg)
+    assert resume_agent(cfg, env).num_timesteps == 200
+    assert not np.array_equal(env.reset(), make_env(cfg).reset())
