@@ -3,22 +3,27 @@
 python train.py                                   # CMEPolicyIteration on Pendulum-v1
 python train.py env=cartpole agent.gamma=0.99 seed=3
 python train.py -m seed=0,1,2                     # a sweep, one run directory per seed
+python train.py resume=outputs/.../checkpoint.zip # continue an interrupted run in its directory
 tensorboard --logdir outputs/                     # (multirun/ for sweeps)
 """
 
+import sys
 from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
-from cme_agent.experiment import run
+from cme_agent.experiment import resume_run_dir, run
+
+OmegaConf.register_new_resolver("cme_run_dir", resume_run_dir, replace=True)
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def main(cfg: DictConfig) -> float:
-    """Hydra entry point; returns the evaluation return (for sweepers)."""
-    return run(cfg, Path(HydraConfig.get().runtime.output_dir))["eval_mean_reward"]
+    """Hydra entry point; returns the final evaluation return (the objective of sweepers)."""
+    hydra_cfg = HydraConfig.get()
+    return run(cfg, Path(hydra_cfg.runtime.output_dir), hydra_cfg.overrides.task, sys.argv[0])["eval_mean_reward"]
 
 
 if __name__ == "__main__":

@@ -3,23 +3,58 @@
 from __future__ import annotations
 
 import json
+import logging
+import shlex
+import signal
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
+import numpy as np
 import torch
 from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig, OmegaConf
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
-from stable_baselines3.common.logger import configure
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import VecEnv
 
-import cme_agent  # noqa: F401  (registers the custom envs)
-from cme_agent.callbacks import IterationCheckpoint
+from cme_agent.algorithm import CMEPolicyIteration
+from cme_agent.callbacks import (
+    EpisodeReturnsByBehaviour,
+    IterationCheckpoint,
+    PeriodicEvaluation,
+    StopOnSignal,
+    TrainingAbandonedError,
+)
+from cme_agent.pictures import PictureCallback
+from cme_agent.run_log import configure_run_logger
+
+log = logging.getLogger(__name__)  # under Hydra: stdout and the run directory's train.log
+
+# SIGINT: Ctrl-C; SIGTERM: kill's default and SLURM's preemption; SIGUSR2: submitit_slurm's warning
+# signal_delay_s before the time limit
+STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGUSR2") if hasattr(signal, name))
+
+
+def resume_run_dir(resume: str | None, default: str) -> str:
+    """``hydra.run.dir`` of conf/config.yaml (resolver ``cme_run_dir``): a run resumed from a
+    checkpoint continues in the checkpoint's folder; a new run goes to ``default``."""
+    return str(Path(resume).parent) if resume else default
+
+
+def resume_command(overrides: Sequence[str], checkpoint: Path, script: str = "train.py") -> str:
+    """The shell command that resumes a run: ``script`` with the run's overrides and ``resume=checkpoint``.
+
+    :param overrides: the command-line overrides of the run (Hydra's ``overrides.task``)
+    :param checkpoint: the checkpoint to resume from
+    :param script: the Hydra app, as it was invoked
+    """
+    kept = [item for item in overrides if item.split("=", 1)[0].lstrip("+~") != "resume"]
+    return shlex.join(["python", script, *kept, f"resume={checkpoint}"])
 
 
 def make_env(cfg: DictConfig) -> VecEnv:
@@ -47,7 +82,11 @@ def resume_agent(cfg: DictConfig, env: VecEnv) -> BaseAlgorithm:
         raise SystemExit(
             f"the checkpoint {cfg.resume} already has {model.num_timesteps} >= total_timesteps={cfg.total_timesteps} steps"
         )
-    print(f"resuming from {cfg.resume} at {model.num_timesteps} steps")
+    # The env's own state (its half-finished episodes, its RNG) is not in a checkpoint: the resumed
+    # run starts fresh episodes. Seed them apart from the run's first ones (cfg.seed), which it
+    # would otherwise replay; with reset_envs_each_iteration the agent reseeds the envs anyway.
+    env.seed(int(np.random.SeedSequence([cfg.seed, model.num_timesteps]).generate_state(1)[0]))
+    log.info(f"resuming from {cfg.resume} at {model.num_timesteps} steps")
     return model
 
 
@@ -68,12 +107,20 @@ def evaluate(model: BaseAlgorithm, cfg: DictConfig) -> tuple[float, float]:
     return float(mean), float(std)
 
 
-def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
-    """Train the agent of ``cfg`` on its env, evaluate it, and write into ``run_dir`` the
-    TensorBoard events, ``progress.csv``, ``model.zip`` and ``summary.json``.
+def run(cfg: DictConfig, run_dir: Path, overrides: Sequence[str] = (), script: str = "train.py") -> dict[str, Any]:
+    """Train the agent of ``cfg`` on its env, evaluating it every ``cfg.eval_every`` steps and at
+    the end, and write into ``run_dir`` the TensorBoard events, ``progress.csv``,
+    ``evaluations.npz``, ``model.zip`` and ``summary.json``.
+
+    SIGINT, SIGTERM or SIGUSR2 stop training at the end of the iteration under way (a second one at once):
+    the checkpoint, ``model.zip`` and a summary marked ``"interrupted": true`` are written, the
+    command that resumes is printed, and the process exits with status 128 + the signal number.
+    A run resumed from a checkpoint of ``run_dir`` continues its logs and evaluation curve.
 
     :param cfg: the composed config (conf/config.yaml)
     :param run_dir: the run directory
+    :param overrides: the run's command-line overrides (for the resume command)
+    :param script: the Hydra app as invoked (for the resume command)
     :return: the summary
     """
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -81,38 +128,103 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         torch.set_num_threads(cfg.torch_threads)
     env = make_env(cfg)
     model = resume_agent(cfg, env) if cfg.resume else build_agent(cfg, env)
-    formats = ["stdout", "csv", "tensorboard"] if cfg.verbose else ["csv", "tensorboard"]
-    model.set_logger(configure(str(run_dir), formats))
-    callbacks = [IterationCheckpoint(run_dir / "checkpoint.zip", cfg.checkpoint_every)] if cfg.checkpoint_every else []
+    model.set_logger(configure_run_logger(run_dir, cfg.verbose, model.num_timesteps if cfg.resume else None))
+    try:
+        evaluation = PeriodicEvaluation(
+            lambda: make_eval_env(cfg), cfg.eval_every, cfg.eval_episodes, log_path=run_dir / "evaluations.npz"
+        )
+        periodic = [IterationCheckpoint(run_dir / "checkpoint.zip", cfg.checkpoint_every)] if cfg.checkpoint_every else []
+    except ValueError as error:
+        raise SystemExit(f"Invalid configuration: {error}") from error
+    by_behaviour = [EpisodeReturnsByBehaviour()] if isinstance(model, CMEPolicyIteration) else []
+    pictures = [_pictures(cfg)] if isinstance(model, CMEPolicyIteration) and cfg.pictures_every else []
+    stop = StopOnSignal(run_dir / "checkpoint.zip", STOP_SIGNALS, restore_on_training_end=False)
     start = time.perf_counter()
-    model.learn(
-        total_timesteps=cfg.total_timesteps - model.num_timesteps,
-        callback=callbacks,
-        progress_bar=cfg.progress_bar,
-        reset_num_timesteps=not cfg.resume,
+    try:
+        model.learn(
+            total_timesteps=cfg.total_timesteps - model.num_timesteps,
+            callback=[evaluation, *by_behaviour, *pictures, *periodic, stop],
+            progress_bar=cfg.progress_bar,
+            reset_num_timesteps=not cfg.resume,
+        )
+        train_seconds = time.perf_counter() - start
+        model.save(run_dir / "model.zip")
+        if not stop.stopped and (not evaluation.evaluations or evaluation.evaluations[-1].timesteps != model.num_timesteps):
+            evaluation.evaluate()
+    except TrainingAbandonedError as abandoned:
+        summary = _summary(cfg, model, run_dir, evaluation, time.perf_counter() - start, model.num_timesteps)
+        _report_interruption(summary, abandoned.signum, run_dir, overrides, script, abandoned=True)
+        raise SystemExit(128 + abandoned.signum) from None
+    finally:
+        stop.restore()
+        env.close()
+    if stop.stopped:  # the checkpoint's step: learn() went one env step further
+        summary = _summary(cfg, model, run_dir, evaluation, train_seconds, stop.checkpoint_steps)
+        _report_interruption(summary, stop.received, run_dir, overrides, script, abandoned=False)
+        raise SystemExit(128 + stop.received)
+    summary = _summary(cfg, model, run_dir, evaluation, train_seconds, model.num_timesteps, interrupted=False)
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    log.info(
+        f"{cfg.env.id} seed {cfg.seed}: return {summary['eval_mean_reward']:.1f} +- {summary['eval_std_reward']:.1f} "
+        f"over {cfg.eval_episodes} episodes after {model.num_timesteps} steps ({train_seconds:.0f} s); run dir {run_dir}"
     )
-    train_seconds = time.perf_counter() - start
-    model.save(run_dir / "model.zip")
-    mean, std = evaluate(model, cfg)
-    model.logger.record("eval/mean_reward", mean)
-    model.logger.record("eval/std_reward", std)
-    model.logger.dump(step=model.num_timesteps)
-    summary = {
+    return summary
+
+
+def _summary(
+    cfg: DictConfig,
+    model: BaseAlgorithm,
+    run_dir: Path,
+    evaluation: PeriodicEvaluation,
+    train_seconds: float,
+    steps: int,
+    interrupted: bool = True,
+) -> dict[str, Any]:
+    """The content of ``summary.json``: the last evaluation, the whole evaluation curve, the run's facts."""
+    last = evaluation.evaluations[-1] if evaluation.evaluations else None
+    return {
         "env": cfg.env.id,
         "agent": type(model).__name__,
         "seed": cfg.seed,
-        "total_timesteps": model.num_timesteps,
+        "total_timesteps": steps,
         "eval_episodes": cfg.eval_episodes,
-        "eval_mean_reward": mean,
-        "eval_std_reward": std,
+        "eval_mean_reward": last.mean_reward if last else None,
+        "eval_std_reward": last.std_reward if last else None,
+        "evaluations": [item.as_dict() for item in evaluation.evaluations],
         "train_seconds": train_seconds,
         "q": getattr(model, "q", None),
+        "interrupted": interrupted,
         "run_dir": str(run_dir),
     }
+
+
+def _pictures(cfg: DictConfig) -> PictureCallback:
+    """The TensorBoard pictures of ``cfg`` (V(s), greedy action, held-out model error, psi's centres)."""
+    try:
+        return PictureCallback(
+            every=cfg.pictures_every,
+            picture_dims=None if cfg.picture_dims is None else OmegaConf.to_container(cfg.picture_dims),
+            resolution=cfg.picture_resolution,
+            fixed=OmegaConf.to_container(cfg.picture_fixed) if cfg.picture_fixed else None,
+        )
+    except ValueError as error:
+        raise SystemExit(f"Invalid configuration: {error}") from error
+
+
+def _report_interruption(
+    summary: dict[str, Any], signum: int, run_dir: Path, overrides: Sequence[str], script: str, abandoned: bool
+) -> None:
+    """Write the summary of an interrupted run with its checkpoint, and log the command that resumes from it."""
+    checkpoint = run_dir / "checkpoint.zip"
+    name, steps = signal.Signals(signum).name, summary["total_timesteps"]
+    if abandoned:
+        what = f"{name} received twice: training abandoned mid-iteration at {steps} steps; wrote summary.json"
+    else:
+        what = f"{name} received: stopped at {steps} steps; wrote checkpoint.zip, model.zip and summary.json"
+    summary["checkpoint"] = str(checkpoint) if checkpoint.exists() else None
+    summary["resume_command"] = resume_command(overrides, checkpoint, script) if checkpoint.exists() else None
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
-    print(
-        f"{cfg.env.id} seed {cfg.seed}: return {mean:.1f} +- {std:.1f} over {cfg.eval_episodes} episodes "
-        f"after {model.num_timesteps} steps ({train_seconds:.0f} s); run dir {run_dir}"
-    )
-    env.close()
-    return summary
+    if summary["resume_command"]:
+        log.info(f"{what} in {run_dir}; resume (from this directory) with:\n  {summary['resume_command']}")
+    else:
+        log.info(f"{what} in {run_dir}; no checkpoint was written yet: nothing to resume from")

@@ -14,7 +14,7 @@ import json
 import os
 import pathlib
 import pickle
-import tempfile
+import secrets
 import zipfile
 from typing import Any
 
@@ -59,12 +59,22 @@ def model_path(path: str | pathlib.Path) -> pathlib.Path:
 def write_atomically(path: str | pathlib.Path, members: dict[str, bytes]) -> None:
     """Write a zip of ``members`` to ``path`` through a temporary file in the same folder and a rename.
 
+    The temporary file is created with mode 0666 less the process umask (``tempfile.mkstemp``
+    would make it 0600), so the file gets the permissions of any file the user writes.
+
     :param path: destination; its folder is created if needed
     :param members: archive member name -> content
     """
     path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
+    while True:
+        temporary = path.parent / f".{path.name}.{secrets.token_hex(8)}.tmp"
+        try:
+            handle = os.open(temporary, flags, 0o666)  # the kernel applies the umask
+            break
+        except FileExistsError:  # a name already taken: draw another
+            continue
     try:
         with os.fdopen(handle, "wb") as raw, zipfile.ZipFile(raw, "w", zipfile.ZIP_DEFLATED) as archive:
             for name, content in members.items():
@@ -74,7 +84,7 @@ def write_atomically(path: str | pathlib.Path, members: dict[str, bytes]) -> Non
             os.fsync(raw.fileno())
         os.replace(temporary, path)
     except BaseException:
-        pathlib.Path(temporary).unlink(missing_ok=True)
+        temporary.unlink(missing_ok=True)
         raise
 
 

@@ -1,5 +1,8 @@
 """save() -> load() after the feature bank has grown."""
 
+import os
+import stat
+
 import numpy as np
 import pytest
 
@@ -54,3 +57,19 @@ def test_learn_without_an_env_says_how_to_give_one(tmp_path, pendulum_kwargs):
     model.save(tmp_path / "m.zip")
     with pytest.raises(ValueError, match=r"load\(path, env=...\) or call set_env"):
         CMEPolicyIteration.load(tmp_path / "m.zip").learn(100)
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o077])
+def test_saved_files_follow_the_umask(tmp_path, pendulum_kwargs, umask):
+    """model.zip and checkpoint.zip get 0666 less the umask (0644 under the usual 022), not mkstemp's 0600."""
+    model = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=0, **pendulum_kwargs)
+    previous = os.umask(umask)
+    try:
+        model.save(tmp_path / "model.zip")
+        model.save(tmp_path / "checkpoint.zip", include=["replay_buffer"])
+        model.save(tmp_path / "model.zip")  # replacing a file keeps the rule
+    finally:
+        os.umask(previous)
+    for name in ("model.zip", "checkpoint.zip"):
+        assert stat.S_IMODE((tmp_path / name).stat().st_mode) == 0o666 & ~umask, name
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint.zip", "model.zip"]  # no temporary left
