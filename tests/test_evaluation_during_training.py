@@ -53,7 +53,7 @@ def test_evaluation_does_not_change_training(pendulum_kwargs):
     watched.learn(
         400, callback=[PeriodicEvaluation(_eval_env, eval_every=100, n_eval_episodes=1), EpisodeReturnsByBehaviour()]
     )
-    assert torch.equal(watched.model.weights, plain.model.weights)
+    assert torch.equal(watched.dynamics.weights, plain.dynamics.weights)
     for name in ("theta_psi", "theta_phi"):
         assert torch.equal(getattr(watched.policy, name), getattr(plain.policy, name)), name
 

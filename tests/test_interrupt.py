@@ -72,7 +72,7 @@ def test_signal_finishes_the_iteration_and_resumes_exactly(tmp_path, pendulum_kw
     resumed = CMEPolicyIteration.load(tmp_path / "checkpoint.zip", env=make_vec_env("Pendulum-v1", n_envs=1, seed=5))
     resumed.learn(200, reset_num_timesteps=False)
     assert resumed.num_timesteps == 500
-    assert torch.equal(resumed.model.weights, uninterrupted.model.weights)
+    assert torch.equal(resumed.dynamics.weights, uninterrupted.dynamics.weights)
     for name in ("theta_psi", "theta_phi"):
         assert torch.equal(getattr(resumed.policy, name), getattr(uninterrupted.policy, name)), name
 
@@ -111,7 +111,7 @@ def test_sigint_to_train_py_leaves_model_summary_and_a_checkpoint_to_resume(tmp_
     assert summary["interrupted"] is True
     steps = summary["total_timesteps"]
     assert 300 <= steps < 1500 and steps % 100 == 0  # an iteration boundary (at or after the signal)
-    assert CMEPolicyIteration.load(run_dir / "model.zip").n_features > 0
+    assert CMEPolicyIteration.load(run_dir / "model.zip").q > 0
     assert summary["checkpoint"] == str(run_dir / "checkpoint.zip")
     assert summary["resume_command"] in stdout
     assert [e["timesteps"] for e in summary["evaluations"]] == list(range(200, steps + 1, 200))
