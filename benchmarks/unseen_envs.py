@@ -301,15 +301,40 @@ def steps_to_target(run: dict[str, Any]) -> int | None:
     return next((row["steps"] for row in run["evaluations"] if row["return_mean"] >= TARGET_RETURN), None)
 
 
-def summary_row(env: str, agent: str, runs: list[dict[str, Any]]) -> list[Any]:
-    """One line of the table: final returns over the complete seeds, costs per run, peak memory."""
+def random_level(complete: dict[tuple[str, str], list[dict[str, Any]]], env: str) -> float | None:
+    """The mean return of the random agent on ``env`` over its seeds (None: not run)."""
+    runs = complete.get((env, "random"), [])
+    return statistics.mean(run["evaluations"][0]["return_mean"] for run in runs) if runs else None
+
+
+def summary_row(env: str, agent: str, runs: list[dict[str, Any]], random: float | None) -> list[Any]:
+    """One line of the table: final returns over the complete seeds (and above random), the best
+    evaluation, costs per run, peak memory.
+
+    :param random: the random agent's mean return on ``env`` (None: not run)
+    """
     finals = [run["evaluations"][-1]["return_mean"] for run in runs]
     seeds = ", ".join(str(run["job"]["seed"]) for run in runs)
     peak = max(run["peak_rss_mib"] for run in runs)
     if agent == "random":
-        episodes = f"{RANDOM_EPISODES} episodes"
-        return [env, agent, seeds, "-", _mean_std(finals), f"{min(finals):.1f}", "-", "-", "-", f"{peak:.0f}", episodes]
+        episodes = f"{RANDOM_EPISODES} episodes per seed"
+        return [
+            env,
+            agent,
+            seeds,
+            "-",
+            _mean_std(finals),
+            "-",
+            f"{min(finals):.1f}",
+            "-",
+            "-",
+            "-",
+            "-",
+            f"{peak:.0f}",
+            episodes,
+        ]
     last = [run["evaluations"][-1] for run in runs]
+    best = [max(row["return_mean"] for row in run["evaluations"]) for run in runs]
     reached = "-"
     if env == TARGET_ENV:
         reached = ", ".join(str(steps_to_target(run) or "never") for run in runs)
@@ -319,13 +344,35 @@ def summary_row(env: str, agent: str, runs: list[dict[str, Any]]) -> list[Any]:
         seeds,
         str(last[0]["steps"]),
         _mean_std(finals),
+        "-" if random is None else f"{statistics.mean(finals) - random:+.1f}",
         f"{min(finals):.1f}",
+        f"{statistics.mean(best):.1f}",
         reached,
         f"{statistics.mean(row['train_seconds'] for row in last):.0f}",
         f"{statistics.mean(row['train_cpu_seconds'] for row in last):.0f}",
         f"{peak:.0f}",
         f"eval {statistics.mean(row['eval_seconds'] for row in last):.0f} s/run"
         + (f"; p = {runs[0]['phi_width']}, q = {last[0]['n_features']}" if agent == "cme" else ""),
+    ]
+
+
+def partial_row(run: dict[str, Any]) -> list[Any]:
+    """One line for a run that did not complete: how far it got and what it had reached."""
+    rows = run["evaluations"]
+    if not rows:
+        return [run["job"]["env"], run["job"]["agent"], run["job"]["seed"], 0, "-", "-", "-", "-", "-"]
+    last = rows[-1]
+    curve = ", ".join(f"{row['return_mean']:.0f}" for row in rows)
+    return [
+        run["job"]["env"],
+        run["job"]["agent"],
+        run["job"]["seed"],
+        last["steps"],
+        f"{last['return_mean']:.1f}",
+        f"{max(row['return_mean'] for row in rows):.1f}",
+        f"{last['train_seconds']:.0f}",
+        f"{last['peak_rss_mib']:.0f}",
+        curve,
     ]
 
 
@@ -422,14 +469,23 @@ def report(envs: list[str], steps: int, out: Path) -> None:
         "seeds",
         "steps",
         "final return (mean +- std over seeds)",
+        "vs random",
         "worst seed",
+        "best evaluation (mean over seeds)",
         f"steps to {TARGET_RETURN:g}",
         "train wall s/run",
         "train CPU s/run",
         "peak MiB",
         "notes",
     ]
-    rows = [summary_row(env, agent, complete[(env, agent)]) for env in envs for agent in AGENTS if (env, agent) in complete]
+    rows = [
+        summary_row(env, agent, complete[(env, agent)], random_level(complete, env))
+        for env in envs
+        for agent in AGENTS
+        if (env, agent) in complete
+    ]
+    partial_header = ["env", "agent", "seed", "steps reached", "last return", "best", "train wall s", "peak MiB", "curve"]
+    partial = [partial_row(run) for run in runs if not run["complete"]]
     unfinished = [
         f"{run['job']['agent']} {run['job']['env']} seed {run['job']['seed']} "
         f"({'failed' if run.get('error') else 'stopped'} at {last_step(run)} steps)"
@@ -471,6 +527,7 @@ def report(envs: list[str], steps: int, out: Path) -> None:
             "",
             f"Started, not complete (excluded above): {', '.join(unfinished) or 'none'}.",
             "",
+            *([markdown_table(partial_header, partial), ""] if partial else []),
             f"Not run: {', '.join(missing) or 'none'}.",
             "",
         ]
