@@ -1,0 +1,557 @@
+"""Envs the library was never tuned on, with library defaults: CME vs SB3 SAC vs random (issue 14).
+
+The suite: InvertedPendulum-v5, InvertedDoublePendulum-v5 and Reacher-v5 (MuJoCo, extra
+``mujoco``: ``pip install -e ".[mujoco]"``), whose observation bounds are infinite, and
+``PointGoal2D-v0``, defined here: a 2-D point mass that must reach a goal only the env knows
+(no ``reward_function``: the agent learns the reward). No env has a preset.
+
+One job is (agent, env, seed), run in a fresh process (so its peak memory is its own):
+
+- ``cme``: ``CMEPolicyIteration("CMEPolicy", env_id, seed=seed)``, nothing else;
+- ``sac``: ``SAC("MlpPolicy", env_id, seed=seed)``, SB3's defaults (learning_starts=100,
+  buffer_size=1e6, batch_size=256, train_freq=1, ...), on the CPU;
+- ``random``: uniform random actions, evaluated once on 100 episodes (a reference line).
+
+Every ``--eval-every`` env steps the learning agents are evaluated on 10 episodes of the
+deterministic policy, on a separate env seeded ``seed + 10_000``. Each job writes its curve to
+``results/unseen_envs/runs/<agent>_<env>_<seed>.json`` after every evaluation (return, steps,
+wall-clock and thread CPU seconds of training, the process's peak RSS so far) and marks it
+complete at the end; complete runs are skipped, so the script can be stopped and run again
+(an incomplete run restarts from scratch). ``--report-only`` writes ``results/unseen_envs.md``
+and ``results/unseen_envs.png`` from the saved runs.
+
+    python benchmarks/unseen_envs.py                       # the whole suite: 3 seeds, 20,000 steps
+    python benchmarks/unseen_envs.py --seeds 0 --agents cme --envs InvertedPendulum-v5
+    python benchmarks/unseen_envs.py --report-only
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import os
+import resource
+import statistics
+import time
+import traceback
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+from common import RESULTS, code_version, command_line, markdown_table, resident_bytes
+from gymnasium import spaces
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.logger import configure
+from stable_baselines3.common.vec_env import VecEnv
+
+CUSTOM_ENV = "PointGoal2D-v0"
+ENVS = ("InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Reacher-v5", CUSTOM_ENV)
+AGENTS = ("cme", "sac", "random")
+LEARNERS = ("cme", "sac")
+TARGET_ENV, TARGET_RETURN, TARGET_STEPS = "InvertedPendulum-v5", 950.0, 5_000
+"""Issue 14: InvertedPendulum-v5 at or above 950 within 5,000 env steps."""
+EVAL_EPISODES = 10
+RANDOM_EPISODES = 100
+EVAL_SEED_OFFSET = 10_000
+MIB = 2**20
+
+
+class PointGoal2D(gym.Env):
+    """A 2-D point mass that must reach a fixed goal: observation (x, y, vx, vy) with infinite
+    bounds, action a force in [-1, 1]^2, reward ``-|p - goal| - 0.05 |a|^2``. The goal is known
+    only to the env (no ``reward_function``); episodes last 100 steps (no termination).
+
+    :param goal: the goal position
+    :param dt: time step
+    :param damping: velocity kept per step
+    """
+
+    metadata: dict[str, Any] = {"render_modes": []}  # noqa: RUF012
+
+    def __init__(self, goal: tuple[float, float] = (0.6, -0.4), dt: float = 0.1, damping: float = 0.9) -> None:
+        self.observation_space = spaces.Box(-np.inf, np.inf, (4,), np.float32)
+        self.action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
+        self.goal = np.asarray(goal, dtype=np.float64)
+        self.dt, self.damping = dt, damping
+        self.state = np.zeros(4)
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        super().reset(seed=seed)
+        self.state = np.concatenate([self.np_random.uniform(-1.0, 1.0, 2), np.zeros(2)])
+        return self.state.astype(np.float32), {}
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        force = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
+        position, velocity = self.state[:2], self.damping * self.state[2:] + self.dt * force
+        self.state = np.concatenate([position + self.dt * velocity, velocity])
+        reward = -float(np.linalg.norm(self.state[:2] - self.goal)) - 0.05 * float(force @ force)
+        return self.state.astype(np.float32), reward, False, False, {}
+
+
+if CUSTOM_ENV not in gym.registry:  # at import: the job processes (spawned) register it too
+    gym.register(CUSTOM_ENV, entry_point=PointGoal2D, max_episode_steps=100)
+
+
+@dataclass(frozen=True)
+class Job:
+    """One run: ``agent`` on ``env`` with ``seed`` for ``steps`` env steps, evaluated every ``eval_every``.
+
+    :param out: the results folder; the record goes to ``<out>/unseen_envs/runs/``
+    :param command: the command and commit that started it (for the report)
+    """
+
+    agent: str
+    env: str
+    seed: int
+    steps: int
+    eval_every: int
+    out: str = str(RESULTS)
+    command: str = ""
+
+    @property
+    def path(self) -> Path:
+        return runs_dir(Path(self.out)) / f"{self.agent}_{self.env}_{self.seed}.json"
+
+
+def runs_dir(out: Path) -> Path:
+    """Where the job records of a results folder go."""
+    return out / "unseen_envs" / "runs"
+
+
+class RandomAgent:
+    """Uniform random actions, with the ``predict`` of an SB3 model.
+
+    :param action_space: the env's action space
+    :param seed: seed of the action draws
+    """
+
+    def __init__(self, action_space: spaces.Space, seed: int) -> None:
+        self.action_space = action_space
+        self.action_space.seed(seed)
+
+    def predict(self, observation: np.ndarray, state: Any = None, episode_start: Any = None, deterministic: bool = False):
+        """One random action per observation of the batch."""
+        return np.stack([self.action_space.sample() for _ in range(len(observation))]), None
+
+
+def make_learner(agent: str, env_id: str, seed: int) -> Any:
+    """The agent at library defaults: CME with nothing but the env and the seed; SAC at SB3's defaults.
+
+    :param agent: ``cme`` or ``sac``
+    :param env_id: the Gymnasium id
+    :param seed: the seed of the agent (and of its training env)
+    """
+    if agent == "cme":
+        from cme_agent import CMEPolicyIteration
+
+        model = CMEPolicyIteration("CMEPolicy", env_id, seed=seed)
+    elif agent == "sac":
+        from stable_baselines3 import SAC
+
+        model = SAC("MlpPolicy", env_id, seed=seed, device="cpu")
+    else:
+        raise ValueError(f"unknown learning agent {agent!r}; known: {LEARNERS}")
+    model.set_logger(configure(None, []))
+    return model
+
+
+def evaluate(model: Any, env: VecEnv, episodes: int) -> dict[str, float]:
+    """Mean, std and mean length of ``episodes`` episodes of the deterministic policy.
+
+    :param model: anything with SB3's ``predict``
+    :param env: the evaluation env (seeded apart from training)
+    :param episodes: the number of episodes
+    """
+    returns, lengths = evaluate_policy(model, env, n_eval_episodes=episodes, deterministic=True, return_episode_rewards=True)
+    return {
+        "return_mean": statistics.mean(returns),
+        "return_std": statistics.pstdev(returns),
+        "episode_length": statistics.mean(lengths),
+    }
+
+
+def peak_rss_mib() -> float:
+    """Peak resident memory of this process so far, MiB (``ru_maxrss`` is in KiB on Linux)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def save_record(path: Path, record: dict[str, Any]) -> None:
+    """Write ``record`` as JSON atomically (an interrupted job never leaves a broken file)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_suffix(".tmp")
+    temporary.write_text(json.dumps(record, indent=1))
+    os.replace(temporary, path)
+
+
+def run_job(job: Job) -> str:
+    """Train and evaluate one job in this (fresh) process, saving its record after every evaluation.
+
+    :return: a line for the progress log
+    """
+    torch.set_num_threads(1)
+    record: dict[str, Any] = {
+        "job": asdict(job),
+        "commit": code_version(),
+        "complete": False,
+        "rss_before_agent_mib": resident_bytes() / MIB,
+        "evaluations": [],
+    }
+    eval_env = make_vec_env(job.env, n_envs=1, seed=job.seed + EVAL_SEED_OFFSET)
+    if job.agent == "random":
+        start = time.perf_counter()
+        row = {"steps": 0, **evaluate(RandomAgent(eval_env.action_space, job.seed), eval_env, RANDOM_EPISODES)}
+        record["evaluations"].append({**row, "eval_seconds": time.perf_counter() - start, "peak_rss_mib": peak_rss_mib()})
+    else:
+        model = make_learner(job.agent, job.env, job.seed)
+        train_wall = train_cpu = eval_wall = 0.0
+        while model.num_timesteps < job.steps:
+            wall, cpu = time.perf_counter(), time.thread_time()
+            model.learn(min(job.eval_every, job.steps - model.num_timesteps), reset_num_timesteps=False)
+            train_wall += time.perf_counter() - wall
+            train_cpu += time.thread_time() - cpu
+            wall = time.perf_counter()
+            row = {"steps": int(model.num_timesteps), **evaluate(model, eval_env, EVAL_EPISODES)}
+            eval_wall += time.perf_counter() - wall
+            row.update(
+                train_seconds=round(train_wall, 2),
+                train_cpu_seconds=round(train_cpu, 2),
+                eval_seconds=round(eval_wall, 2),
+                peak_rss_mib=round(peak_rss_mib(), 1),
+                n_features=int(getattr(model, "q", 0)),
+            )
+            record["evaluations"].append(row)
+            save_record(job.path, record)
+            print(f"{job.agent} {job.env} seed {job.seed} steps {row['steps']}: {row['return_mean']:.1f}", flush=True)
+        if job.agent == "cme":
+            record["phi_width"] = int(model.dynamics.p)
+            record["reward_source"] = model.reward_source
+    record["complete"] = True
+    record["peak_rss_mib"] = round(peak_rss_mib(), 1)
+    save_record(job.path, record)
+    final = record["evaluations"][-1]
+    return f"{job.agent} {job.env} seed {job.seed}: {final['return_mean']:.1f} (peak {record['peak_rss_mib']:.0f} MiB)"
+
+
+def run_job_safely(job: Job) -> str:
+    """:func:`run_job`, a failure kept in the job's record (``error``) instead of stopping the suite."""
+    try:
+        return run_job(job)
+    except Exception:
+        record = load_record(job.path) or {"job": asdict(job), "commit": code_version(), "evaluations": []}
+        record.update(complete=False, error=traceback.format_exc())
+        save_record(job.path, record)
+        return f"{job.agent} {job.env} seed {job.seed}: FAILED\n{record['error']}"
+
+
+def load_record(path: Path) -> dict[str, Any] | None:
+    """The saved record of a job, or None if there is none."""
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def planned_jobs(agents: list[str], envs: list[str], seeds: list[int], steps: int, eval_every: int, out: Path) -> list[Job]:
+    """The jobs in the order they run: the random references first (seconds each), then seed by
+    seed CME on every env, then SAC on every env."""
+    command = command_line()
+    order = [("random", seed) for seed in seeds] + [(agent, seed) for seed in seeds for agent in LEARNERS]
+    return [
+        Job(agent, env, seed, steps, eval_every, str(out), command) for agent, seed in order if agent in agents for env in envs
+    ]
+
+
+def is_done(job: Job) -> bool:
+    """Whether the job's record is complete, for the same number of steps."""
+    record = load_record(job.path)
+    return record is not None and record["complete"] and record["job"]["steps"] == job.steps
+
+
+def run_all(jobs: list[Job], workers: int) -> None:
+    """Run the jobs that are not complete, ``workers`` at a time, each in a fresh process."""
+    todo = [job for job in jobs if not is_done(job)]
+    print(f"{len(jobs) - len(todo)} of {len(jobs)} jobs already complete; running {len(todo)}", flush=True)
+    if not todo:
+        return
+    with multiprocessing.get_context("spawn").Pool(workers, maxtasksperchild=1) as pool:
+        for done, line in enumerate(pool.imap_unordered(run_job_safely, todo, chunksize=1), start=1):
+            print(f"[{done}/{len(todo)}] {line}", flush=True)
+
+
+# ---------------------------------------------------------------------- report
+def saved_runs(out: Path) -> list[dict[str, Any]]:
+    """Every saved record (complete or not) of a results folder."""
+    return [json.loads(path.read_text()) for path in sorted(runs_dir(out).glob("*.json"))]
+
+
+def _mean_std(values: list[float]) -> str:
+    spread = statistics.stdev(values) if len(values) > 1 else 0.0
+    return f"{statistics.mean(values):.1f} +- {spread:.1f}"
+
+
+def last_step(run: dict[str, Any]) -> int:
+    """The step count of a run's last evaluation (0 before the first)."""
+    return run["evaluations"][-1]["steps"] if run["evaluations"] else 0
+
+
+def steps_to_target(run: dict[str, Any]) -> int | None:
+    """The first evaluated step count at which the return reached the InvertedPendulum target."""
+    return next((row["steps"] for row in run["evaluations"] if row["return_mean"] >= TARGET_RETURN), None)
+
+
+def random_level(complete: dict[tuple[str, str], list[dict[str, Any]]], env: str) -> float | None:
+    """The mean return of the random agent on ``env`` over its seeds (None: not run)."""
+    runs = complete.get((env, "random"), [])
+    return statistics.mean(run["evaluations"][0]["return_mean"] for run in runs) if runs else None
+
+
+def summary_row(env: str, agent: str, runs: list[dict[str, Any]], random: float | None) -> list[Any]:
+    """One line of the table: final returns over the complete seeds (and above random), the best
+    evaluation, costs per run, peak memory.
+
+    :param random: the random agent's mean return on ``env`` (None: not run)
+    """
+    finals = [run["evaluations"][-1]["return_mean"] for run in runs]
+    seeds = ", ".join(str(run["job"]["seed"]) for run in runs)
+    peak = max(run["peak_rss_mib"] for run in runs)
+    if agent == "random":
+        episodes = f"{RANDOM_EPISODES} episodes per seed"
+        return [
+            env,
+            agent,
+            seeds,
+            "-",
+            _mean_std(finals),
+            "-",
+            f"{min(finals):.1f}",
+            "-",
+            "-",
+            "-",
+            "-",
+            f"{peak:.0f}",
+            episodes,
+        ]
+    last = [run["evaluations"][-1] for run in runs]
+    best = [max(row["return_mean"] for row in run["evaluations"]) for run in runs]
+    reached = "-"
+    if env == TARGET_ENV:
+        reached = ", ".join(str(steps_to_target(run) or "never") for run in runs)
+    return [
+        env,
+        agent,
+        seeds,
+        str(last[0]["steps"]),
+        _mean_std(finals),
+        "-" if random is None else f"{statistics.mean(finals) - random:+.1f}",
+        f"{min(finals):.1f}",
+        f"{statistics.mean(best):.1f}",
+        reached,
+        f"{statistics.mean(row['train_seconds'] for row in last):.0f}",
+        f"{statistics.mean(row['train_cpu_seconds'] for row in last):.0f}",
+        f"{peak:.0f}",
+        f"eval {statistics.mean(row['eval_seconds'] for row in last):.0f} s/run"
+        + (f"; p = {runs[0]['phi_width']}, q = {last[0]['n_features']}" if agent == "cme" else ""),
+    ]
+
+
+def partial_row(run: dict[str, Any]) -> list[Any]:
+    """One line for a run that did not complete: how far it got and what it had reached."""
+    rows = run["evaluations"]
+    if not rows:
+        return [run["job"]["env"], run["job"]["agent"], run["job"]["seed"], 0, "-", "-", "-", "-", "-"]
+    last = rows[-1]
+    curve = ", ".join(f"{row['return_mean']:.0f}" for row in rows)
+    return [
+        run["job"]["env"],
+        run["job"]["agent"],
+        run["job"]["seed"],
+        last["steps"],
+        f"{last['return_mean']:.1f}",
+        f"{max(row['return_mean'] for row in rows):.1f}",
+        f"{last['train_seconds']:.0f}",
+        f"{last['peak_rss_mib']:.0f}",
+        curve,
+    ]
+
+
+def verdicts(complete: dict[tuple[str, str], list[dict[str, Any]]], steps: int) -> list[str]:
+    """The issue's targets, each said met, missed or not measured, with the numbers."""
+    lines = []
+    cme_target = complete.get((TARGET_ENV, "cme"), [])
+    if cme_target:
+        reached = [steps_to_target(run) for run in cme_target]
+        met = all(r is not None and r <= TARGET_STEPS for r in reached)
+        lines.append(
+            f"- {TARGET_ENV} >= {TARGET_RETURN:g} within {TARGET_STEPS:,} steps (CME): {'met' if met else 'MISSED'} "
+            f"(first evaluation at or above it, per seed: {', '.join(str(r or 'never') for r in reached)})"
+        )
+    else:
+        lines.append(f"- {TARGET_ENV} >= {TARGET_RETURN:g} within {TARGET_STEPS:,} steps: not measured (no complete CME run)")
+    for env in ENVS:
+        cme, sac = complete.get((env, "cme"), []), complete.get((env, "sac"), [])
+        cme = [run for run in cme if run["evaluations"][-1]["steps"] >= steps]
+        sac = [run for run in sac if run["evaluations"][-1]["steps"] >= steps]
+        if not cme or not sac:
+            lines.append(
+                f"- ahead of SAC at {steps:,} steps on {env}: not measured ({len(cme)} CME, {len(sac)} SAC runs complete)"
+            )
+            continue
+        cme_mean = statistics.mean(run["evaluations"][-1]["return_mean"] for run in cme)
+        sac_mean = statistics.mean(run["evaluations"][-1]["return_mean"] for run in sac)
+        verdict = "met" if cme_mean > sac_mean else "MISSED"
+        lines.append(
+            f"- ahead of SAC at {steps:,} steps on {env}: {verdict} (CME {cme_mean:.1f} over {len(cme)} seeds, "
+            f"SAC {sac_mean:.1f} over {len(sac)})"
+        )
+    peaks = [run["peak_rss_mib"] for runs in complete.values() for run in runs if run["job"]["agent"] == "cme"]
+    if peaks:
+        verdict = "met" if max(peaks) <= 1024 else "MISSED"
+        lines.append(f"- CME peak memory <= 1 GiB on every env run: {verdict} (largest {max(peaks):.0f} MiB, whole process)")
+    return lines
+
+
+def plot(complete: dict[tuple[str, str], list[dict[str, Any]]], envs: list[str], out: Path) -> None:
+    """results/unseen_envs.png: one panel per env, each seed thin, the mean thick, random dashed."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib not installed: no figure (pip install -e '.[plots]')")
+        return
+    fig, axes = plt.subplots(1, len(envs), figsize=(4.5 * len(envs), 3.8), squeeze=False)
+    colours = {"cme": "tab:blue", "sac": "tab:orange"}
+    for ax, env in zip(axes[0], envs, strict=True):
+        for agent, colour in colours.items():
+            runs = complete.get((env, agent), [])
+            for run in runs:
+                ax.plot(
+                    [r["steps"] for r in run["evaluations"]],
+                    [r["return_mean"] for r in run["evaluations"]],
+                    color=colour,
+                    alpha=0.3,
+                )
+            if runs:
+                shared = min(len(run["evaluations"]) for run in runs)
+                steps = [runs[0]["evaluations"][i]["steps"] for i in range(shared)]
+                mean = [statistics.mean(run["evaluations"][i]["return_mean"] for run in runs) for i in range(shared)]
+                ax.plot(steps, mean, color=colour, linewidth=2, label=f"{agent} (mean of {len(runs)})")
+        random_runs = complete.get((env, "random"), [])
+        if random_runs:
+            level = statistics.mean(run["evaluations"][0]["return_mean"] for run in random_runs)
+            ax.axhline(level, color="grey", linestyle="--", label="random")
+        if env == TARGET_ENV:
+            ax.axhline(TARGET_RETURN, color="red", linestyle=":", label=f"target {TARGET_RETURN:g}")
+            ax.axvline(TARGET_STEPS, color="red", linestyle=":", linewidth=0.8)
+        ax.set_title(env, fontsize=10)
+        ax.set_xlabel("env steps")
+        ax.set_ylabel(f"evaluation return ({EVAL_EPISODES} episodes)")
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7)
+    fig.suptitle(command_line().replace("`", ""), fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "unseen_envs.png", dpi=100)
+
+
+def report(envs: list[str], steps: int, out: Path) -> None:
+    """Write <out>/unseen_envs.md (and .png) from the saved runs, saying which are complete."""
+    runs = saved_runs(out)
+    complete: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for run in runs:
+        if run["complete"]:
+            complete.setdefault((run["job"]["env"], run["job"]["agent"]), []).append(run)
+    header = [
+        "env",
+        "agent",
+        "seeds",
+        "steps",
+        "final return (mean +- std over seeds)",
+        "vs random",
+        "worst seed",
+        "best evaluation (mean over seeds)",
+        f"steps to {TARGET_RETURN:g}",
+        "train wall s/run",
+        "train CPU s/run",
+        "peak MiB",
+        "notes",
+    ]
+    rows = [
+        summary_row(env, agent, complete[(env, agent)], random_level(complete, env))
+        for env in envs
+        for agent in AGENTS
+        if (env, agent) in complete
+    ]
+    partial_header = ["env", "agent", "seed", "steps reached", "last return", "best", "train wall s", "peak MiB", "curve"]
+    partial = [partial_row(run) for run in runs if not run["complete"]]
+    unfinished = [
+        f"{run['job']['agent']} {run['job']['env']} seed {run['job']['seed']} "
+        f"({'failed' if run.get('error') else 'stopped'} at {last_step(run)} steps)"
+        for run in runs
+        if not run["complete"]
+    ]
+    planned = [Job(agent, env, seed, steps, 0, str(out)) for seed in (0, 1, 2) for agent in AGENTS for env in envs]
+    missing = [f"{job.agent} {job.env} seed {job.seed}" for job in planned if load_record(job.path) is None]
+    done = ", ".join(
+        f"{agent} {env} seeds {sorted(run['job']['seed'] for run in group)}"
+        for (env, agent), group in sorted(complete.items())
+    )
+    commands = sorted({f"`{run['job']['command']}` (runs at commit `{run['commit']}`)" for run in runs})
+    text = "\n".join(
+        [
+            "# Unseen envs at library defaults: CME vs SB3 SAC vs random",
+            "",
+            f"Report: `{command_line()}`. Runs made by: {'; '.join(commands) or 'none'}.",
+            "",
+            'CME is `CMEPolicyIteration("CMEPolicy", env_id, seed=seed)` with nothing else (no env here has a preset); '
+            'SAC is `SAC("MlpPolicy", env_id, seed=seed)` at SB3\'s defaults (learning_starts=100, buffer 1e6, batch 256, '
+            "one gradient step per env step) on the CPU; random takes uniform actions. Final return = the last "
+            f"{EVAL_EPISODES}-episode evaluation of the deterministic policy on an env seeded seed + {EVAL_SEED_OFFSET:,} "
+            f"(random: {RANDOM_EPISODES} episodes). 'steps to {TARGET_RETURN:g}' = first evaluation (every "
+            f"{runs[0]['job']['eval_every'] if runs else '?'} steps) at or above it on {TARGET_ENV}, per seed. "
+            "Train wall/CPU = seconds in learn() per run (thread CPU time; evaluations apart); peak MiB = ru_maxrss of the "
+            "job's own process (torch, SB3 and MuJoCo included; what the process held before building the agent is in "
+            "each run's JSON). One job at a time, one torch thread, on a 2-core machine shared with other work.",
+            "",
+            markdown_table(header, rows),
+            "",
+            "## Targets (issue 14)",
+            "",
+            *verdicts(complete, steps),
+            "",
+            "## Runs",
+            "",
+            f"Complete: {sum(len(v) for v in complete.values())} ({done}).",
+            "",
+            f"Started, not complete (excluded above): {', '.join(unfinished) or 'none'}.",
+            "",
+            *([markdown_table(partial_header, partial), ""] if partial else []),
+            f"Not run: {', '.join(missing) or 'none'}.",
+            "",
+        ]
+    )
+    print(text)
+    (out / "unseen_envs.md").write_text(text)
+    plot(complete, envs, out)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--agents", nargs="+", default=list(AGENTS), choices=AGENTS)
+    parser.add_argument("--envs", nargs="+", default=list(ENVS), choices=ENVS)
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    parser.add_argument("--steps", type=int, default=20_000, help="env steps per run")
+    parser.add_argument("--eval-every", type=int, default=1_000, help="env steps between evaluations")
+    parser.add_argument("--workers", type=int, default=1, help="jobs at a time (each a process with one torch thread)")
+    parser.add_argument("--out", type=Path, default=RESULTS, help="results folder (default results/)")
+    parser.add_argument("--report-only", action="store_true", help="only write the report from the saved runs")
+    args = parser.parse_args()
+    if not args.report_only:
+        run_all(planned_jobs(args.agents, args.envs, args.seeds, args.steps, args.eval_every, args.out), args.workers)
+    report(list(ENVS), args.steps, args.out)
+
+
+if __name__ == "__main__":
+    main()
