@@ -57,7 +57,11 @@ def test_fewer_states_than_features_uses_the_dual_and_fits_the_collection(solver
     assert w.shape == (442,) and torch.isfinite(w).all()
     residual = (phi - 0.9 * next_phi) @ w - rewards if not lstd else phi.T @ ((phi - 0.9 * next_phi) @ w - rewards)
     assert float(residual.abs().max()) < 1e-3 * float(rewards.abs().max()) * (phi.shape[0] if lstd else 1)
-    assert torch.allclose(w, _primal_reference(phi, next_phi, rewards, 0.9, 1e-8, lstd), rtol=1e-4, atol=1e-6)
+    reference = _primal_reference(phi, next_phi, rewards, 0.9, 1e-8, lstd)
+    values, reference_values = phi @ w, phi @ reference
+    assert float((values - reference_values).norm()) < 1e-5 * float(reference_values.norm())
+    if not lstd:  # LSTD's non-symmetric system at a 1e-8 ridge fixes w itself only to ~1e-4 (it varies with BLAS threads)
+        assert torch.allclose(w, reference, rtol=1e-4, atol=1e-6)
 
 
 @pytest.mark.parametrize(
