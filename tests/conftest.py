@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from stable_baselines3.common.callbacks import BaseCallback
 
 from cme_agent.presets import preset_for
 
@@ -53,3 +54,16 @@ def run_train(run_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
     command = [sys.executable, str(ROOT / "train.py"), f"hydra.run.dir={run_dir}", *overrides]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     return subprocess.run(command, capture_output=True, text=True, timeout=300, cwd=run_dir.parent, env=env)
+
+
+class CountingCallback(BaseCallback):
+    """Counts ``on_step`` calls; returns False at call ``stop_after`` (None: never)."""
+
+    def __init__(self, stop_after: int | None = None) -> None:
+        super().__init__()
+        self.calls = 0
+        self.stop_after = stop_after
+
+    def _on_step(self) -> bool:
+        self.calls += 1
+        return self.stop_after is None or self.calls < self.stop_after

@@ -3,7 +3,6 @@ callbacks and vectorised envs work."""
 
 import numpy as np
 from stable_baselines3.common.callbacks import (
-    BaseCallback,
     CheckpointCallback,
     EvalCallback,
     StopTrainingOnMaxEpisodes,
@@ -11,17 +10,7 @@ from stable_baselines3.common.callbacks import (
 from stable_baselines3.common.env_util import make_vec_env
 
 from cme_agent import CMEPolicyIteration
-
-
-class CountingCallback(BaseCallback):
-    def __init__(self, stop_after: int | None = None) -> None:
-        super().__init__()
-        self.calls = 0
-        self.stop_after = stop_after
-
-    def _on_step(self) -> bool:
-        self.calls += 1
-        return self.stop_after is None or self.calls < self.stop_after
+from tests.conftest import CountingCallback
 
 
 def test_on_step_once_per_env_step(pendulum_kwargs):

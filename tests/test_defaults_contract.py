@@ -14,12 +14,12 @@ import numpy as np
 import pytest
 import torch
 from gymnasium import spaces
-from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.vec_env import SubprocVecEnv, VecEnv
 
 from cme_agent import CMEPolicyIteration
+from tests.conftest import CountingCallback
 
 N_ENVS = 3
 
@@ -76,19 +76,6 @@ ENVS: dict[str, Callable[[], VecEnv]] = {
     "CartPole-v1": lambda: make_vec_env("CartPole-v1", n_envs=N_ENVS, seed=0),
     "PointMass3D": lambda: make_vec_env(PointMass3D, n_envs=N_ENVS, seed=0),
 }
-
-
-class CountingCallback(BaseCallback):
-    """Counts ``on_step`` calls; returns False at call ``stop_after`` (None: never)."""
-
-    def __init__(self, stop_after: int | None = None) -> None:
-        super().__init__()
-        self.calls = 0
-        self.stop_after = stop_after
-
-    def _on_step(self) -> bool:
-        self.calls += 1
-        return self.stop_after is None or self.calls < self.stop_after
 
 
 def _probe_observations(env: VecEnv, n_steps: int = 20) -> np.ndarray:

@@ -51,7 +51,9 @@ def test_sgd_step_is_equation_6():
     assert torch.allclose(weights, expected)
 
 
-def test_sgd_update_is_consecutive_steps_of_equation_6():
+@pytest.mark.parametrize("target_elements", [2**22, 50])  # one block of targets, or one minibatch per block
+def test_sgd_update_is_consecutive_steps_of_equation_6(target_elements, monkeypatch):
+    monkeypatch.setattr("cme_agent.dynamics.cme.TARGET_ELEMENTS", target_elements)
     """Building the targets and kernel operands of all minibatches at once does not change the steps."""
     dynamics = _dynamics(reward=None)
     data = _transitions(400)

@@ -38,6 +38,11 @@ from cme_agent.state_features import make_state_features
 PhiSpec = StateFeatureConfig | dict[str, Any] | nn.Module | Callable[[torch.Tensor], torch.Tensor] | None
 
 
+TARGET_ELEMENTS = 2**22
+"""Largest block of SGD targets built at once (16 MiB of float32): with a wide phi (CartPole's
+preset: p = 2,836) the targets of all 200 minibatches would take about 300 MB, three times over."""
+
+
 def _zero_reward(obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
     return torch.zeros(obs.shape[0], dtype=obs.dtype, device=obs.device)
 
@@ -140,22 +145,26 @@ class CMEDynamics(nn.Module):
     def sgd_update(self, batches: Transitions, batch_size: int, learning_rate: float, l2: float) -> None:
         """Consecutive minibatch steps of eq. (6) on B, in place.
 
-        The targets of all steps and the kernel operands are built at once (they do not depend
-        on B); each step's psi goes into one reused buffer that stays in the CPU's cache, and
-        the steps themselves are sequential.
+        The kernel operands of all steps are built at once, the targets a few minibatches at a
+        time (at most :data:`TARGET_ELEMENTS` floats, whatever phi's width); neither depends on
+        B. Each step's psi goes into one reused buffer that stays in the CPU's cache, and the
+        steps themselves are sequential.
 
         :param batches: the minibatches of all steps, concatenated in order (a multiple of ``batch_size``)
         :param batch_size: transitions per step
         :param learning_rate: normalised step in (0, 2) (see :func:`~cme_agent.dynamics.sgd.sgd_step`)
         :param l2: ridge coefficient lambda
         """
-        targets = self.targets(batches)
         points, weights = kernel_points(self.encode(batches.obs, batches.actions)), self.psi.weights()
         buffer = self.weights.new_empty(min(batch_size, len(batches)), self.q)
-        for step in range(0, len(batches), batch_size):
-            rows = slice(step, step + batch_size)
-            psi = kernel_from_points(points[rows], weights, out=buffer[: len(targets[rows])])
-            sgd_step(self.weights, psi, targets[rows], learning_rate, l2)
+        span = batch_size * max(1, TARGET_ELEMENTS // (batch_size * self.weights.shape[0]))  # bounded memory for wide phi
+        for start in range(0, len(batches), span):
+            targets = self.targets(Transitions(*(tensor[start : start + span] for tensor in vars(batches).values())))
+            for step in range(0, len(targets), batch_size):
+                step_targets = targets[step : step + batch_size]
+                rows = slice(start + step, start + step + len(step_targets))
+                psi = kernel_from_points(points[rows], weights, out=buffer[: len(step_targets)])
+                sgd_step(self.weights, psi, step_targets, learning_rate, l2)
 
     def dictionary(self, z: torch.Tensor, centres: torch.Tensor, bandwidths: torch.Tensor) -> torch.Tensor:
         """The candidate atoms of eq. (5): Gaussian kernels centred at ``centres`` at every bandwidth.
