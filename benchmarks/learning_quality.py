@@ -1,19 +1,27 @@
-"""Learning quality of CMEPolicyIteration on the Gymnasium classics, several seeds.
+"""Learning quality and stability of CMEPolicyIteration on the Gymnasium classics, 10 seeds.
 
 Each run trains with the Hydra config of its env (exactly what ``python train.py env=<name>``
-runs) and pauses every ``--eval-every`` steps for an evaluation: 10 episodes of the
-deterministic policy from random starts on a separate env. The table reports the FINAL
-evaluation (the last policy, not the best one seen) as mean +- std over seeds, the targets of
-issue 2, and the first step count at which an evaluation reached the target. Writes
-results/learning_quality.md, results/learning_quality.csv and, with matplotlib,
-results/learning_quality.png.
+runs: the library's defaults and the env's preset, cme_agent/presets.py) and pauses every
+1,000 env steps for an evaluation: 10 episodes of the deterministic policy from fixed random
+starts (the same at every evaluation of a seed, seeded apart from training,
+:func:`cme_agent.experiment.make_eval_env`). Per env the report gives (issue 15): how many seeds
+reached the target and the median env steps to it, the final return (the last policy, not
+the best one seen) as mean +- std over seeds, the worst seed's final return, and the worst
+evaluation after the target was first reached (a collapse). Writes results/<stem>.md,
+results/<stem>.csv and results/<stem>.png (every seed's curve and their mean).
+
+Each finished run is kept in results/<stem>/<env>_seed<k>.json, so an interrupted benchmark
+resumes where it stopped (rerun the same command); ``--report-only`` rewrites the report
+from the records.
 
     python benchmarks/learning_quality.py --envs pendulum cartpole --seeds 0 1 2 [--workers 2]
+    python benchmarks/learning_quality.py --stem learning_quality_soft --overrides agent.improvement.method=soft
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import multiprocessing
 import statistics
 import time
@@ -22,27 +30,24 @@ from typing import Any
 
 import gymnasium as gym
 import torch
-from common import command_line, compose_config, markdown_table, plot_learning_curves, write_report
+from common import RESULTS, command_line, compose_config, markdown_table, plot_learning_curves, write_report
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.logger import Logger, configure
 
 from cme_agent.experiment import build_agent, make_env, make_eval_env
 
-TARGETS = {  # env config: (target return, evaluation period); the step budget is the env config's total_timesteps
-    "pendulum": (-200.0, 600),
-    "cartpole": (475.0, 1_000),
-    "acrobot": (-100.0, 1_000),
-    "mountain_car": (-130.0, 2_000),
-    "mountain_car_continuous": (90.0, 3_000),
+TARGETS = {  # env config: target return; the step budget is the env config's total_timesteps
+    "pendulum": -200.0,
+    "cartpole": 475.0,
+    "acrobot": -100.0,
+    "mountain_car": -130.0,
+    "mountain_car_continuous": 90.0,
 }
+PERIOD = 1_000
+"""Env steps between evaluations."""
 
 
-def budget(env_name: str) -> int:
-    """The env-step budget of an env config (conf/env/<name>.yaml, ``total_timesteps``): the one place it is set."""
-    return int(compose_config([f"env={env_name}"]).total_timesteps)
-
-
-def episode_returns(model: Any, env: gym.Env, episodes: int) -> dict[str, float]:
+def episode_returns(model: Any, env: gym.Env, episodes: int = 10) -> dict[str, float]:
     """Mean and std of the return of the deterministic policy over ``episodes`` episodes."""
     returns, _ = evaluate_policy(model, env, n_eval_episodes=episodes, return_episode_rewards=True)
     return {"return_mean": statistics.mean(returns), "return_std": statistics.pstdev(returns)}
@@ -53,27 +58,28 @@ def train_with_evaluations(
     seed: int,
     overrides: list[str],
     budget: int,
-    period: int,
-    evaluate: Callable[[Any, gym.Env], dict[str, float]] = lambda model, env: episode_returns(model, env, 10),
+    period: int = PERIOD,
+    evaluate: Callable[[Any, gym.Env], dict[str, float]] = episode_returns,
     logger: Logger | None = None,
 ) -> list[dict[str, Any]]:
-    """Train the Hydra config ``env=<env_name>`` for ``budget`` steps, evaluating every ``period``
-    steps on a separate env seeded apart from training; one row per evaluation.
+    """Train the Hydra config ``env=<env_name>`` for ``budget`` env steps, evaluating every
+    ``period`` steps on a fresh evaluation env (:func:`cme_agent.experiment.make_eval_env`: the
+    seed's fixed starts, the same at every evaluation); one row per evaluation.
 
+    :param evaluate: (model, fresh evaluation env) -> the row's statistics, ``return_mean`` among them
     :param logger: the agent's logger (default: one that writes nothing)
     """
     torch.set_num_threads(1)
     cfg = compose_config([f"env={env_name}", f"seed={seed}", "verbose=0", *overrides])
     model = build_agent(cfg, make_env(cfg))
     model.set_logger(configure(None, []) if logger is None else logger)
-    eval_env = make_eval_env(cfg)
     rows, train_seconds = [], 0.0
     while model.num_timesteps < budget:
         start = time.perf_counter()
         model.learn(min(period, budget - model.num_timesteps), reset_num_timesteps=False)
         train_seconds += time.perf_counter() - start
         row = {"env": env_name, "seed": seed, "steps": model.num_timesteps, "iteration": getattr(model, "iteration", None)}
-        row.update(evaluate(model, eval_env))
+        row.update(evaluate(model, make_eval_env(cfg)))
         row.update(n_features=getattr(model, "q", 0), train_seconds=round(train_seconds, 1))
         rows.append(row)
         print(
@@ -82,25 +88,36 @@ def train_with_evaluations(
     return rows
 
 
-def run_one(job: tuple[str, int, list[str]]) -> list[dict[str, Any]]:
-    """One seed of one env with its config's budget and the evaluation period from TARGETS."""
-    env_name, seed, overrides = job
-    return train_with_evaluations(env_name, seed, overrides, budget(env_name), TARGETS[env_name][1])
+def run_one(job: tuple[str, int, list[str], str]) -> list[dict[str, Any]]:
+    """One seed of one env, read from its record if an earlier run of the benchmark finished it."""
+    env_name, seed, overrides, stem = job
+    record = RESULTS / stem / f"{env_name}_seed{seed}.json"
+    if record.exists():
+        return json.loads(record.read_text())["curve"]
+    curve = train_with_evaluations(env_name, seed, overrides, int(compose_config([f"env={env_name}"]).total_timesteps))
+    record.parent.mkdir(parents=True, exist_ok=True)
+    record.write_text(json.dumps({"overrides": overrides, "command": command_line(), "curve": curve}))
+    return curve
 
 
 def summarise(env_name: str, curves: list[list[dict[str, Any]]]) -> list[Any]:
-    target = TARGETS[env_name][0]
+    """One row of the report: reach, final returns, worst seed, worst evaluation after the target."""
+    target = TARGETS[env_name]
     finals = [curve[-1]["return_mean"] for curve in curves]
-    reached = [next((row["steps"] for row in curve if row["return_mean"] >= target), None) for curve in curves]
+    reached = [next((i for i, row in enumerate(curve) if row["return_mean"] >= target), None) for curve in curves]
+    steps_to = [curve[i]["steps"] for curve, i in zip(curves, reached, strict=True) if i is not None]
+    after = [min(row["return_mean"] for row in curve[i:]) for curve, i in zip(curves, reached, strict=True) if i is not None]
     spread = statistics.stdev(finals) if len(finals) > 1 else 0.0
     return [
         env_name,
         curves[0][-1]["steps"],
         f"{target:g}",
+        f"{len(steps_to)}/{len(curves)}",
+        f"{statistics.median(steps_to):.0f}" if steps_to else "-",
         f"{statistics.mean(finals):.1f} +- {spread:.1f}",
+        f"{min(finals):.0f}",
+        f"{min(after):.0f}" if after else "-",
         ", ".join(f"{f:.0f}" for f in finals),
-        "yes" if statistics.mean(finals) >= target else "no",
-        ", ".join("-" if r is None else str(r) for r in reached),
         f"{statistics.mean(curve[-1]['train_seconds'] for curve in curves):.0f}",
         f"{statistics.mean(curve[-1]['n_features'] for curve in curves):.0f}",
     ]
@@ -109,38 +126,47 @@ def summarise(env_name: str, curves: list[list[dict[str, Any]]]) -> list[Any]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--envs", nargs="+", default=list(TARGETS), choices=list(TARGETS))
-    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    parser.add_argument("--seeds", nargs="+", type=int, default=list(range(10)))
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--overrides", nargs="*", default=[], help="Hydra overrides for every run")
     parser.add_argument("--stem", default="learning_quality", help="name of the results/<stem>.{md,csv,png} files")
+    parser.add_argument("--report-only", action="store_true", help="report the runs on record, train nothing")
     args = parser.parse_args()
-    jobs = [(env_name, seed, args.overrides) for env_name in args.envs for seed in args.seeds]
+    jobs = [(env_name, seed, args.overrides, args.stem) for env_name in args.envs for seed in args.seeds]
+    if args.report_only:
+        jobs = [job for job in jobs if (RESULTS / args.stem / f"{job[0]}_seed{job[1]}.json").exists()]
     start = time.perf_counter()
     with multiprocessing.get_context("spawn").Pool(args.workers) as pool:
         results = pool.map(run_one, jobs, chunksize=1)
     curves: dict[str, list[list[dict[str, Any]]]] = {}
-    for (env_name, _, _), curve in zip(jobs, results, strict=True):
+    for (env_name, *_), curve in zip(jobs, results, strict=True):
         curves.setdefault(env_name, []).append(curve)
     header = [
         "env",
         "steps",
         "target",
+        "seeds at target",
+        "median steps to target",
         "final return (mean +- std)",
-        "per seed",
-        "target met",
-        "steps to target",
+        "worst seed",
+        "worst eval after target",
+        "per seed (final)",
         "train s",
         "q",
     ]
     table = markdown_table(header, [summarise(env_name, runs) for env_name, runs in curves.items()])
+    seeds = sorted({seed for _, seed, *_ in jobs})
     text = (
         f"# Learning quality of CMEPolicyIteration\n\nCommand: `{command_line()}`\n\n"
-        f"Seeds {args.seeds}; final return = 10-episode evaluation of the deterministic policy after the last "
-        f"training step (random starts, seeded apart from training); 'steps to target' = first evaluation at or above "
-        f"the target. Wall-clock {time.perf_counter() - start:.0f} s on this machine with {args.workers} workers.\n\n{table}\n"
+        f"Seeds {seeds}; every {PERIOD:,} env steps an evaluation: 10 episodes of the deterministic policy from "
+        "fixed random starts (the same at every evaluation of a seed, seeded apart from training). Final return = "
+        "the last evaluation (the last policy, not the best one seen); 'median steps to target' over the seeds "
+        "that reached it; 'worst eval after target' = the lowest evaluation of any seed after its first at or "
+        f"above the target. Wall-clock of this invocation {time.perf_counter() - start:.0f} s with {args.workers} "
+        f"workers (runs on record are read, not rerun).\n\n{table}\n"
     )
     write_report(args.stem, text, results)
-    panels = {name: (runs, TARGETS[name][0], "target") for name, runs in curves.items()}
+    panels = {name: (runs, TARGETS[name], "target") for name, runs in curves.items()}
     plot_learning_curves(panels, f"{args.stem}.png")
 
 

@@ -525,7 +525,7 @@ def sample_efficiency(profile: Profile, runs_dir: Path) -> None:
     """Steps to each env's threshold: MP, Kernel, every SB3 algorithm, and the best SB3 one."""
     best_rows, all_rows, drawn = [], [], []
     for env in profile.table_envs:
-        threshold = TARGETS[env][0]
+        threshold = TARGETS[env]
         agents = ["cme", "kernel", *SB3_AGENTS[env][0][: profile.sb3_agents]]
         loaded = {a: runs for a in agents if (runs := load_runs(runs_dir, a, env, profile.table_seeds))}
         drawn += [run for runs in loaded.values() for run in runs]

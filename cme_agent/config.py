@@ -261,7 +261,7 @@ class ImprovementConfig:
     """
 
     method: str = "smoothed_greedy"
-    # Pendulum-v1 preset, 6,000 steps, final returns on 10 fixed starts (benchmarks/soft_vs_greedy.py):
+    # Pendulum-v1 preset, 6,000 steps, final returns on 10 fixed starts (issue 15's first A/B, one run per seed):
     # beta 0.5, decay 0.9: -191, -173, -163, -133, -277 (seeds 0-4); 0.5, 0.95: -202, -135, -180;
     # 1.0, 0.9: -138, -137, -654; 0.1, 1 (the plain sum): -659, -163, -701, it learns too slowly
     # (estimates of early, poor models keep their weight); smoothed greedy: -137, -139, -533, -136, -173
