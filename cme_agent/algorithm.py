@@ -170,7 +170,6 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         self.stats_window_size = stats_window_size
         self._behaviour: BehaviourPolicy | None = None
         self._value_weights: torch.Tensor | None = None
-        self._psi_buffer: torch.Tensor | None = None
         self.iteration = 0
         self.model_step_scale = 1.0
         if self.env is not None:
@@ -538,16 +537,17 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         """
         config, dynamics = self.evaluation_config, self.dynamics
         with self._timed("policy_evaluation"):
-            psi_out = self._psi_workspace(len(states))
+            readout = dynamics.readout()  # psi is read block by block, never stored: (|C|, q) is the big array
             if self.policy.soft:
-                step = self.policy.soft_step(states, psi_out=psi_out)
-                rewards = step.step_rewards + dynamics.linear_reward(step.phi, step.psi)
+                step = self.policy.soft_step(states, readout)
+                next_phi, model_rewards = dynamics.read(step.phi, step.psi)
+                rewards = step.step_rewards + model_rewards
                 self._record_soft_policy(step.probabilities)
             else:
-                step = self.policy.greedy_step(states, psi_out=psi_out)
-                rewards = dynamics.expected_reward(states, step.actions, step.phi, step.psi)
+                step = self.policy.greedy_step(states, readout)
+                next_phi, model_rewards = dynamics.read(step.phi, step.psi)
+                rewards = dynamics.reward.step_reward(states, step.actions) + model_rewards
             phi = step.phi
-            next_phi = dynamics.expected_next_phi(phi, step.psi)
             if config.solver == "gd":
                 initial = self._value_weights if self._value_weights is not None else torch.zeros_like(phi[0])
                 weights = bellman_residual_descent(phi, next_phi, rewards, self.gamma, config.l2, initial, config.gd_steps)
@@ -560,14 +560,6 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             self.logger.record("train/q_mean", float(step.values.mean()))
             self.logger.record("train/value_mean", float((phi @ weights).mean()))
             return weights
-
-    def _psi_workspace(self, n: int) -> torch.Tensor:
-        """An (n, q) buffer for psi on C, kept between the rounds of an iteration: a fresh one
-        would fault in its (tens of MB of) pages every round."""
-        shape = (n, self.q)
-        if self._psi_buffer is None or self._psi_buffer.shape != shape:
-            self._psi_buffer = torch.empty(shape, device=self.device)
-        return self._psi_buffer
 
     def _record_soft_policy(self, probabilities: torch.Tensor) -> None:
         """Log the soft policy's mean entropy on C (nats; log K is uniform) and its beta_k."""

@@ -48,6 +48,13 @@ def _row_blocks(n: int, width: int) -> list[slice]:
     return [slice(start, min(start + size, n)) for start in range(0, n, size)]
 
 
+def _write_block(psi: torch.Tensor, readout: torch.Tensor | None, out: torch.Tensor, rows: slice) -> None:
+    """Complete the rows ``rows`` of a step's output from their psi, (block, q): psi @ readout
+    into ``out[rows]`` (one cache-resident product), or nothing when psi was written there in place."""
+    if readout is not None:
+        torch.mm(psi, readout, out=out[rows])
+
+
 @dataclass
 class GreedyStep:
     """The greedy policy at a batch of states, with the features planning reuses.
@@ -55,7 +62,8 @@ class GreedyStep:
     :param actions: (N, act_dim) Box actions in env units, or (N,) Discrete indices
     :param values: (N,) Q_k at those actions
     :param phi: (N, p) phi(s)
-    :param psi: (N, q) psi(s, pi(s))
+    :param psi: (N, q) psi(s, pi(s)), or (N, m) psi(s, pi(s)) @ readout when the step was given
+        a readout (psi itself is then never stored)
     """
 
     actions: torch.Tensor
@@ -71,7 +79,8 @@ class SoftStep:
     :param probabilities: (N, K) pi(a|s) over the candidates
     :param values: (N,) E_pi[Qbar_k(s, A)]
     :param phi: (N, p) phi(s)
-    :param psi: (N, q) E_pi[psi(s, A)] = S(s) * (pi(s) @ A)
+    :param psi: (N, q) E_pi[psi(s, A)] = S(s) * (pi(s) @ A), or (N, m) E_pi[psi(s, A)] @ readout
+        when the step was given a readout
     :param step_rewards: (N,) E_pi[step_reward(s, A)]
     """
 
@@ -222,17 +231,20 @@ class CMEPolicy(BasePolicy):
         values = torch.addmm(self._candidate_step_rewards(obs), state_factor[:, :q_used], self.weighted_candidates().T)
         return values.add_((phi @ self.theta_phi).unsqueeze(1))
 
-    def greedy_step(self, obs: torch.Tensor, psi_out: torch.Tensor | None = None) -> GreedyStep:
+    def greedy_step(self, obs: torch.Tensor, readout: torch.Tensor | None = None) -> GreedyStep:
         """pi_{k+1} = greedy(Q_k) at a batch of states: the best candidate, refined by gradient
         ascent if configured, with phi(s) and psi(s, pi(s)) = S(s) * A(pi(s)) built from the
         same state factor S. S is built in blocks of rows small enough to stay in the CPU's
-        cache, and each block is used (Q over the candidates, then psi) before the next.
+        cache, and each block is used (Q over the candidates, then psi, then psi @ readout)
+        before the next.
 
         :param obs: (N, obs_dim) observations
-        :param psi_out: (N, q) buffer for psi(s, pi(s)) (memory reused between calls), or None
+        :param readout: (q, m) what psi is read through (e.g.
+            :meth:`~cme_agent.dynamics.CMEDynamics.readout`): the step returns
+            psi(s, pi(s)) @ readout, (N, m), and never stores the (N, q) psi; None: psi itself
         """
         dynamics, n, q_used = self.dynamics, obs.shape[0], self.theta_psi.shape[0]
-        phi, points, psi, blocks, (state_buffer, gathered) = self._blocked_inputs(obs, psi_out)
+        phi, points, out, blocks, (state_buffer, scratch) = self._blocked_inputs(obs, readout)
         state_weights, factor, weighted = dynamics.psi.state_weights(), self.candidate_factor(), self.weighted_candidates()
         base = self._candidate_step_rewards(obs) + (phi @ self.theta_phi).unsqueeze(1)
         values, best = base.new_empty(n), torch.empty(n, dtype=torch.long, device=obs.device)
@@ -240,16 +252,20 @@ class CMEPolicy(BasePolicy):
             length = rows.stop - rows.start
             state = kernel_from_points(points[rows], state_weights, out=state_buffer[:length])
             torch.max(torch.addmm(base[rows], state[:, :q_used], weighted.T), dim=1, out=(values[rows], best[rows]))
-            torch.mul(state, torch.index_select(factor, 0, best[rows], out=gathered[:length]), out=psi[rows])
+            gathered = torch.index_select(factor, 0, best[rows], out=scratch[:length])
+            destination = gathered if readout is not None else out[rows]
+            _write_block(torch.mul(state, gathered, out=destination), readout, out, rows)
         actions = self.candidates[best]
         if not dynamics.action_encoder.discrete and self.action_search.refine_steps > 0:
             actions, values = self._refine(obs, actions, values)
             refined_factor = dynamics.action_factor(actions)
-            for rows in _row_blocks(n, dynamics.q):
-                torch.mul(kernel_from_points(points[rows], state_weights), refined_factor[rows], out=psi[rows])
-        return GreedyStep(actions, values, phi, psi)
+            for rows in blocks:
+                state = kernel_from_points(points[rows], state_weights, out=state_buffer[: rows.stop - rows.start])
+                destination = state if readout is not None else out[rows]
+                _write_block(torch.mul(state, refined_factor[rows], out=destination), readout, out, rows)
+        return GreedyStep(actions, values, phi, out)
 
-    def soft_step(self, obs: torch.Tensor, psi_out: torch.Tensor | None = None) -> SoftStep:
+    def soft_step(self, obs: torch.Tensor, readout: torch.Tensor | None = None) -> SoftStep:
         """pi_{k+1}(a|s) = softmax_a(beta_k Qbar_k(s, a)) over the candidates (proportional to
         exp(beta_k / k sum_{j<=k} Q^_j(s, a))), with what evaluating it needs: phi(s), the
         expected psi ``E_pi[psi(s, A)] = S(s) * (pi(s) @ A)`` (the factorised psi: one
@@ -257,10 +273,10 @@ class CMEPolicy(BasePolicy):
         built in blocks of rows as in :meth:`greedy_step`, each used before the next.
 
         :param obs: (N, obs_dim) observations
-        :param psi_out: (N, q) buffer for E_pi[psi(s, A)] (memory reused between calls), or None
+        :param readout: (q, m) what E_pi[psi(s, A)] is read through, as in :meth:`greedy_step`; None: psi itself
         """
         q_used = self.theta_psi.shape[0]
-        phi, points, psi, blocks, (state_buffer, mixed) = self._blocked_inputs(obs, psi_out)
+        phi, points, out, blocks, (state_buffer, mixed) = self._blocked_inputs(obs, readout)
         state_weights, factor, weighted = (
             self.dynamics.psi.state_weights(),
             self.candidate_factor(),
@@ -274,8 +290,10 @@ class CMEPolicy(BasePolicy):
             state = kernel_from_points(points[rows], state_weights, out=state_buffer[:length])
             values[rows] = torch.addmm(values[rows], state[:, :q_used], weighted.T)
             probabilities[rows] = softmax_policy(values[rows], self.inverse_temperature)
-            expected_candidate_features(state, factor, probabilities[rows], out=psi[rows], scratch=mixed[:length])
-        return SoftStep(probabilities, (probabilities * values).sum(1), phi, psi, (probabilities * step_rewards).sum(1))
+            destination = mixed[:length] if readout is not None else out[rows]
+            expected = expected_candidate_features(state, factor, probabilities[rows], out=destination, scratch=mixed[:length])
+            _write_block(expected, readout, out, rows)
+        return SoftStep(probabilities, (probabilities * values).sum(1), phi, out, (probabilities * step_rewards).sum(1))
 
     def probabilities(self, obs: torch.Tensor) -> torch.Tensor:
         """The soft policy pi(a|s) over the candidates (without Q's state-only term, which does
@@ -286,17 +304,18 @@ class CMEPolicy(BasePolicy):
         return softmax_policy(torch.addmm(self._candidate_step_rewards(obs), state, weighted.T), self.inverse_temperature)
 
     def _blocked_inputs(
-        self, obs: torch.Tensor, psi_out: torch.Tensor | None
+        self, obs: torch.Tensor, readout: torch.Tensor | None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[slice], tuple[torch.Tensor, ...]]:
         """What :meth:`greedy_step` and :meth:`soft_step` build before their loop over blocks of
-        rows: phi(s) (N, p), the state factor's points operand (N, state_dim + 2), the (N, q)
-        output for psi, the blocks, and two (block, q) scratch buffers reused by every block."""
+        rows: phi(s) (N, p), the state factor's points operand (N, state_dim + 2), the output
+        (N, q) for psi or (N, m) for psi @ readout, the blocks, and two (block, q) scratch
+        buffers reused by every block."""
         q = self.dynamics.q
         points = kernel_points(self.dynamics.obs_encoder.normalize(obs))
-        psi = obs.new_empty(obs.shape[0], q) if psi_out is None else psi_out
+        out = obs.new_empty(obs.shape[0], q if readout is None else readout.shape[1])
         blocks = _row_blocks(obs.shape[0], q)
         buffers = obs.new_empty(2, blocks[0].stop if blocks else 0, q).unbind(0)
-        return self.dynamics.phi(obs), points, psi, blocks, buffers
+        return self.dynamics.phi(obs), points, out, blocks, buffers
 
     def _candidate_step_rewards(self, obs: torch.Tensor) -> torch.Tensor:
         """The known step reward at every state and candidate action: (N, obs_dim) -> (N, K)."""

@@ -80,15 +80,20 @@ class RBFGrid(nn.Module):
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         """:param obs: (N, obs_dim) observations. :return: (N, p) features."""
-        coords = self.encoder.grid_coordinates(obs)
-        features = torch.ones(obs.shape[0], 1, device=obs.device, dtype=obs.dtype)
+        coords, n = self.encoder.grid_coordinates(obs), obs.shape[0]
+        out = obs.new_empty(n, self.width)
+        out[:, -1] = 1
+        features = out.new_ones(n, 1)
         for dim, periodic in enumerate(self.periodic):
             diff = coords[:, dim : dim + 1] - getattr(self, f"centres_{dim}")
             if periodic:
                 diff = torch.remainder(diff + 1, 2) - 1
             bumps = torch.exp(-(diff**2) * getattr(self, f"inv_two_var_{dim}"))
-            features = (features[:, :, None] * bumps[:, None, :]).reshape(obs.shape[0], -1)
-        return torch.cat([features, torch.ones_like(features[:, :1])], dim=1)
+            if dim == len(self.periodic) - 1:  # the last product is written in place, beside the constant
+                torch.mul(features[:, :, None], bumps[:, None, :], out=out[:, :-1].unflatten(1, (-1, bumps.shape[1])))
+            else:
+                features = (features[:, :, None] * bumps[:, None, :]).reshape(n, -1)
+        return out
 
 
 class RandomFourierFeatures(nn.Module):

@@ -1,6 +1,8 @@
 """The fast paths equal the reference computations to float32 tolerance: the kernel, the greedy
 step (blocked, factorised, into reused buffers), acting, and the policy evaluation built on them."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -46,7 +48,7 @@ def test_greedy_step_equals_the_paired_computation(trained, env_id, monkeypatch)
     policy = trained[env_id].policy
     monkeypatch.setattr(policy_module, "BLOCK_ELEMENTS", 7 * policy.dynamics.q)  # many blocks, a ragged last one
     states = trained[env_id].draw_collection()[:100]
-    step = policy.greedy_step(states, psi_out=torch.full((100, policy.dynamics.q), float("nan")))
+    step = policy.greedy_step(states)
     table = torch.stack(
         [policy.q_values(states, action.expand(len(states), *action.shape)) for action in policy.candidates], 1
     )
@@ -55,6 +57,13 @@ def test_greedy_step_equals_the_paired_computation(trained, env_id, monkeypatch)
     assert torch.allclose(step.psi, policy.dynamics.features(states, step.actions), atol=1e-6)
     assert torch.allclose(step.phi, policy.dynamics.phi(states))
     assert torch.equal(policy.act(states), step.actions)
+    dynamics = policy.dynamics
+    read = policy.greedy_step(states, dynamics.readout())  # psi read block by block, never stored
+    assert torch.equal(read.actions, step.actions)
+    next_phi, model_rewards = dynamics.read(read.phi, read.psi)
+    reference_next_phi = step.psi @ dynamics.phi_weights.T + (step.phi if dynamics.feature_dynamics else 0)
+    assert torch.allclose(next_phi, reference_next_phi, atol=1e-4)
+    assert torch.allclose(model_rewards, dynamics.linear_reward(step.phi, step.psi), atol=1e-4)
 
 
 @pytest.mark.parametrize("env_id", ["Pendulum-v1", "CartPole-v1"])
@@ -93,3 +102,16 @@ def test_cuda_runs_end_to_end():
     assert model.dynamics.weights.device.type == "cuda" and model.q > 0
     action, _ = model.predict(np.zeros(3, np.float32), deterministic=True)
     assert action.shape == (1,)
+
+
+def test_refined_greedy_step_reads_psi_at_the_refined_actions(trained, monkeypatch):
+    agent = trained["Pendulum-v1"]
+    policy = agent.policy
+    monkeypatch.setattr(policy, "action_search", dataclasses.replace(policy.action_search, refine_steps=5, refine_lr=0.05))
+    monkeypatch.setattr(policy_module, "BLOCK_ELEMENTS", 7 * policy.dynamics.q)
+    states = agent.draw_collection()[:60]
+    step = policy.greedy_step(states)
+    assert not torch.isin(step.actions, policy.candidates).all()  # some actions moved off the candidate grid
+    assert torch.allclose(step.psi, policy.dynamics.features(states, step.actions), atol=1e-6)
+    readout = policy.dynamics.readout()
+    assert torch.allclose(policy.greedy_step(states, readout).psi, step.psi @ readout, atol=1e-4)

@@ -148,7 +148,7 @@ def grow(policy, count, generator):
 def test_soft_step_equals_the_paired_computation():
     policy, obs = _random_policy()
     policy.inverse_temperature = torch.tensor(1.5)
-    step = policy.soft_step(obs, psi_out=torch.full((len(obs), policy.dynamics.q), float("nan")))
+    step = policy.soft_step(obs)
     table = policy.candidate_q_values(obs)
     probabilities = torch.softmax(1.5 * table, dim=1)
     assert torch.allclose(step.probabilities, probabilities, atol=1e-6)
@@ -157,6 +157,8 @@ def test_soft_step_equals_the_paired_computation():
         probabilities[:, [k]] * policy.dynamics.features(obs, a.expand(len(obs), 1)) for k, a in enumerate(policy.candidates)
     )
     assert torch.allclose(step.psi, paired_psi, atol=1e-5)
+    readout = torch.randn(policy.dynamics.q, 3)
+    assert torch.allclose(policy.soft_step(obs, readout).psi, paired_psi @ readout, atol=1e-4)
     step_rewards = policy.dynamics.reward.step_reward(obs.repeat_interleave(9, 0), policy.candidates.repeat(len(obs), 1))
     assert torch.allclose(step.step_rewards, (probabilities * step_rewards.reshape(-1, 9)).sum(1), atol=1e-6)
     assert torch.allclose(step.values, (probabilities * table).sum(1), atol=1e-4)

@@ -117,9 +117,9 @@ class CMEDynamics(nn.Module):
 
     def targets(self, batch: Transitions) -> torch.Tensor:
         """Regression targets y of a batch: (N, p_out), phi~(s') (- phi(s)) (and r / reward_scale)."""
-        target = self.phi(batch.next_obs) * (~batch.terminated).unsqueeze(1).to(batch.next_obs)
+        target = self.phi(batch.next_obs).mul_((~batch.terminated).unsqueeze(1).to(batch.next_obs))
         if self.feature_dynamics:
-            target = target - self.phi(batch.obs)
+            target.sub_(self.phi(batch.obs))
         if self.learn_reward:
             target = torch.cat([target, (batch.rewards / self.reward_scale).unsqueeze(1)], dim=1)
         return target
@@ -195,8 +195,25 @@ class CMEDynamics(nn.Module):
     # ------------------------------------------------------------------ what planning reads
     def expected_next_phi(self, phi: torch.Tensor, psi: torch.Tensor) -> torch.Tensor:
         """E_model[phi~(S') | s, a]: (N, p) from phi(s) (N, p) and psi(s, a) (N, q)."""
-        predicted = psi @ self.phi_weights.T
-        return predicted.add_(phi) if self.feature_dynamics else predicted
+        return self.read(phi, psi @ self.readout())[0]
+
+    def readout(self) -> torch.Tensor:
+        """(q, p + 1): the linear maps planning reads psi through, ``[B_phi^T, c_psi]``, so that
+        one product ``psi @ readout`` gives both E_model[phi~(S')] (less phi(s) with feature
+        dynamics) and the model's part of the reward (:meth:`read`); contiguous, for the product."""
+        return torch.cat([self.phi_weights.T, self.reward_weights()[1].unsqueeze(1)], dim=1)
+
+    def read(self, phi: torch.Tensor, psi_read: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """E_model[phi~(S') | s, a] and the model's part of the expected reward
+        (:meth:`linear_reward`) from ``psi @ readout()``.
+
+        :param phi: (N, p) phi(s)
+        :param psi_read: (N, p + 1) psi(s, a) @ :meth:`readout` (or E_pi[psi(s, A)] @ readout), modified in place
+        :return: E_model[phi~(S')] (N, p), a view of ``psi_read``, and the reward part (N,)
+        """
+        predicted, reward = psi_read[:, : self.p], psi_read[:, self.p]
+        reward = reward + phi @ self.reward_weights()[0]
+        return predicted.add_(phi) if self.feature_dynamics else predicted, reward
 
     def reward_weights(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The model's linear part of the expected reward,
