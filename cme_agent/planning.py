@@ -88,7 +88,7 @@ def _gram_solve(matrix: torch.Tensor, rhs: torch.Tensor, ridge: float) -> torch.
     return torch.linalg.solve(lower + lower.tril(-1).T, rhs.double())
 
 
-def _transposed_product(matrix: torch.Tensor, vector: torch.Tensor, rows: int = 4096) -> torch.Tensor:
+def _transposed_product(matrix: torch.Tensor, vector: torch.Tensor, rows: int = 128) -> torch.Tensor:
     """matrix^T vector in float64, a block of rows at a time (no float64 copy of the whole matrix).
 
     :param matrix: (n, p)
