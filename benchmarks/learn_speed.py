@@ -16,7 +16,7 @@ in thread CPU seconds, the two versions alternating):
 The baseline is the commit given by ``--baseline``, checked out into a scratch git worktree and
 imported in place of this checkout (same interpreter and packages: only cme_agent differs).
 
-    python benchmarks/learn_speed.py [--baseline 6add98b] [--repeats 1]
+    python benchmarks/learn_speed.py [--baseline 6add98b] [--repeats 1] [--stem learn_speed]
 """
 
 from __future__ import annotations
@@ -109,6 +109,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--baseline", default="6add98b", help="commit to compare against")
     parser.add_argument("--repeats", type=int, default=1, help="alternated runs of each workload per version")
+    parser.add_argument("--stem", default="learn_speed", help="name of the results/<stem>.md file")
     args = parser.parse_args()
     versions = {"baseline": checkout(args.baseline), "current": ROOT}
     workloads = ("agreement", "quickstart", "cartpole")
@@ -148,7 +149,7 @@ def main() -> None:
         f"this commit: {returns['current']}.\n\nAfter the same 400 random-phase steps (2 iterations, the same data), "
         f"{args.baseline} vs this commit (q, then Frobenius norms): {norms}.\n"
     )
-    write_markdown("learn_speed", text)
+    write_markdown(args.stem, text)
 
 
 if __name__ == "__main__":
