@@ -16,7 +16,7 @@ in thread CPU seconds, the two versions alternating):
 The baseline is the commit given by ``--baseline``, checked out into a scratch git worktree and
 imported in place of this checkout (same interpreter and packages: only cme_agent differs).
 
-    python benchmarks/learn_speed.py [--baseline 6add98b] [--repeats 1] [--stem learn_speed]
+    python benchmarks/learn_speed.py [--baseline 6add98b] [--repeats 1] [--stem learn_speed] [--workloads cartpole]
 """
 
 from __future__ import annotations
@@ -86,6 +86,9 @@ print(json.dumps({"learn_seconds": learn_seconds, "return_mean": mean, "return_s
 """
 
 
+WORKLOADS = ("agreement", "quickstart", "cartpole")
+
+
 def checkout(commit: str) -> Path:
     """A scratch git worktree of ``commit`` (made once, reused)."""
     path = Path(tempfile.gettempdir()) / f"cme_agent_baseline_{commit}"
@@ -110,9 +113,10 @@ def main() -> None:
     parser.add_argument("--baseline", default="6add98b", help="commit to compare against")
     parser.add_argument("--repeats", type=int, default=1, help="alternated runs of each workload per version")
     parser.add_argument("--stem", default="learn_speed", help="name of the results/<stem>.md file")
+    parser.add_argument("--workloads", nargs="+", default=list(WORKLOADS), choices=WORKLOADS, help="which workloads to run")
     args = parser.parse_args()
     versions = {"baseline": checkout(args.baseline), "current": ROOT}
-    workloads = ("agreement", "quickstart", "cartpole")
+    workloads = [w for w in WORKLOADS if w in args.workloads]
     results: dict[str, dict[str, list[dict[str, float]]]] = {w: {v: [] for v in versions} for w in workloads}
     for _ in range(args.repeats):
         for workload in results:
@@ -129,26 +133,35 @@ def main() -> None:
         ("predict, one observation", "quickstart", "predict_seconds", 1e3, "ms"),
         ("CartPole training per env step", "cartpole", "seconds_per_step", 1e3, "ms"),
     ):
+        if workload not in results:
+            continue
         before, after = median(workload, "baseline", key) * scale, median(workload, "current", key) * scale
         rows.append([label, f"{before:.3g} {unit}", f"{after:.3g} {unit}", f"{before / after:.2f}x"])
-    agreement = {version: results["agreement"][version][0] for version in versions}
-    norms = "; ".join(
-        f"{key}: {agreement['baseline'][key]:.6g} vs {agreement['current'][key]:.6g}"
-        for key in ("q", "B", "theta_psi", "theta_phi")
-    )
-    returns = {
-        version: ", ".join(f"{r['return_mean']:.2f} +- {r['return_std']:.2f}" for r in results["quickstart"][version])
-        for version in versions
-    }
     text = (
         f"# learn() and predict() against commit {args.baseline}\n\nCommand: `{command_line()}` (thread CPU "
         f"seconds, 1 torch thread, medians of {args.repeats} alternated run(s) per version; the baseline is "
         f"commit {args.baseline} in a scratch worktree, same interpreter and packages).\n\n"
-        f"{markdown_table(['workload', args.baseline, 'this commit', 'speed-up'], rows)}\n\n"
-        f"Quickstart evaluation return (10 episodes, fixed starts, seed 0): {args.baseline}: {returns['baseline']}; "
-        f"this commit: {returns['current']}.\n\nAfter the same 400 random-phase steps (2 iterations, the same data), "
-        f"{args.baseline} vs this commit (q, then Frobenius norms): {norms}.\n"
+        f"{markdown_table(['workload', args.baseline, 'this commit', 'speed-up'], rows)}\n"
     )
+    if "quickstart" in results:
+        returns = {
+            version: ", ".join(f"{r['return_mean']:.2f} +- {r['return_std']:.2f}" for r in results["quickstart"][version])
+            for version in versions
+        }
+        text += (
+            f"\nQuickstart evaluation return (10 episodes, fixed starts, seed 0): {args.baseline}: "
+            f"{returns['baseline']}; this commit: {returns['current']}.\n"
+        )
+    if "agreement" in results:
+        agreement = {version: results["agreement"][version][0] for version in versions}
+        norms = "; ".join(
+            f"{key}: {agreement['baseline'][key]:.6g} vs {agreement['current'][key]:.6g}"
+            for key in ("q", "B", "theta_psi", "theta_phi")
+        )
+        text += (
+            f"\nAfter the same 400 random-phase steps (2 iterations, the same data), {args.baseline} vs this commit "
+            f"(q, then Frobenius norms): {norms}.\n"
+        )
     write_markdown(args.stem, text)
 
 
