@@ -156,8 +156,12 @@ def main() -> None:
     ]
     table = markdown_table(header, [summarise(env_name, runs) for env_name, runs in curves.items()])
     seeds = sorted({seed for _, seed, *_ in jobs})
+    records = [RESULTS / args.stem / f"{env_name}_seed{seed}.json" for env_name, seed, *_ in jobs]
+    made_by = sorted({json.loads(record.read_text())["command"] for record in records})
     text = (
-        f"# Learning quality of CMEPolicyIteration\n\nCommand: `{command_line()}`\n\n"
+        f"# Learning quality of CMEPolicyIteration\n\nCommand: `{command_line()}`; the runs: "
+        + "; ".join(f"`{command}`" for command in made_by)
+        + "\n\n"
         f"Seeds {seeds}; every {PERIOD:,} env steps an evaluation: 10 episodes of the deterministic policy from "
         "fixed random starts (the same at every evaluation of a seed, seeded apart from training). Final return = "
         "the last evaluation (the last policy, not the best one seen); 'median steps to target' over the seeds "
