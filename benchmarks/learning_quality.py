@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing
+import os
 import statistics
 import time
 from collections.abc import Callable
@@ -96,7 +97,9 @@ def run_one(job: tuple[str, int, list[str], str]) -> list[dict[str, Any]]:
         return json.loads(record.read_text())["curve"]
     curve = train_with_evaluations(env_name, seed, overrides, int(compose_config([f"env={env_name}"]).total_timesteps))
     record.parent.mkdir(parents=True, exist_ok=True)
-    record.write_text(json.dumps({"overrides": overrides, "command": command_line(), "curve": curve}))
+    temporary = record.with_suffix(".tmp")  # a stop mid-write leaves no half record
+    temporary.write_text(json.dumps({"overrides": overrides, "command": command_line(), "curve": curve}))
+    os.replace(temporary, record)
     return curve
 
 
