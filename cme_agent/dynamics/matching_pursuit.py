@@ -56,14 +56,14 @@ def matching_pursuit(
     energy_before = float((R * R).sum())
     energy = energy_before
     picked: dict[int, torch.Tensor] = {}
-    for _ in range(max_atoms):
-        scores = torch.where(usable, (C * C).sum(1) / norms.clamp_min(1e-300), torch.zeros_like(norms))
+    for _ in range(max_atoms):  # no (c, p) temporary per pick: the updates are in place
+        scores = torch.where(usable, torch.linalg.vector_norm(C, dim=1).square_() / norms.clamp_min(1e-300), 0.0)
         j = int(torch.argmax(scores))
         score = float(scores[j])
         if score <= 0 or score < threshold * energy:
             break
         b = C[j] / norms[j]
-        C -= (G.T @ G[:, j])[:, None] * b[None, :]
+        C.addr_(G.T @ G[:, j], b, alpha=-1)
         energy = max(energy - score, 0.0)
         picked[j] = picked[j] + b if j in picked else b
     indices = torch.tensor(sorted(picked), dtype=torch.long, device=atoms.device)
