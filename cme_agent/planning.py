@@ -5,8 +5,9 @@ Shapes: n = |C| states in the collection, p = width of phi, q = width of psi.
 
 The evaluation's large products (A^T A, A A^T, A^T r, with A an n x p matrix) run in the
 input dtype (float32 by default); only the small p x p (or n x n) system is solved in
-float64 (Cholesky for the symmetric Bellman-residual systems, whose products are built as
-their lower triangle; LU for LSTD's). Ridges are added in place. When n < p the exact solvers switch to the dual form,
+float64 (:mod:`cme_agent.linalg`: a blocked Cholesky in place for the symmetric
+Bellman-residual systems, whose products are built as their lower triangle; LU for LSTD's).
+Ridges are added in place. When n < p the exact solvers switch to the dual form,
 an n x n system, which gives the same weights to rounding (the push-through identity
 ``(X^T A + lambda I)^{-1} X^T = X^T (A X^T + lambda I)^{-1}``).
 """
@@ -15,9 +16,12 @@ from __future__ import annotations
 
 import torch
 
+from cme_agent.linalg import gram_solve, ridge_solve, transposed_product
+
 SYSTEM_BYTES_PER_ENTRY = 20
-"""Bytes per entry of the evaluation's m x m system, m = min(|C|, p): the product in float32
-(4), its float64 copy (8) and the factorisation's copy (8)."""
+"""Bytes per entry of the evaluation's m x m system, m = min(|C|, p), at most: LSTD's product in
+float32 (4), its float64 copy (8) and the LU factorisation's copy (8). (The Bellman residual's
+Cholesky holds only the float64 system, 8.)"""
 
 MATRIX_BYTES_PER_ENTRY = 12
 """Bytes per entry of the evaluation's |C| x p float32 matrices: Phi_C, Phi'_C and A."""
@@ -34,71 +38,6 @@ def evaluation_memory_bytes(width: int, collection_size: int) -> int:
     """
     smaller = min(width, collection_size)
     return MATRIX_BYTES_PER_ENTRY * collection_size * width + SYSTEM_BYTES_PER_ENTRY * smaller * smaller
-
-
-GRAM_BLOCK = 256
-"""Rows per block of :func:`_lower_gram`: the diagonal blocks are the only work done twice."""
-
-
-def _ridge_solve(lhs: torch.Tensor, rhs: torch.Tensor, ridge: float) -> torch.Tensor:
-    """Solve (lhs + ridge I) x = rhs in float64 (LU), the ridge added in place on the float64 copy.
-
-    :param lhs: (m, m) system, any float dtype
-    :param rhs: (m,) right-hand side
-    :param ridge: lambda, in the units of lhs
-    :return: (m,) float64 solution
-    """
-    system = lhs.double()
-    system.diagonal().add_(ridge)
-    return torch.linalg.solve(system, rhs.double())
-
-
-def _lower_gram(matrix: torch.Tensor) -> torch.Tensor:
-    """The lower triangle (by blocks of :data:`GRAM_BLOCK` rows) of ``matrix @ matrix.T``: about
-    half the FLOPs of the full product; the blocks above the diagonal are left at 0.
-
-    :param matrix: (m, k), any strides (e.g. the transpose of an (k, m) matrix)
-    :return: (m, m) in matrix's dtype
-    """
-    m = matrix.shape[0]
-    out = matrix.new_zeros(m, m)
-    for start in range(0, m, GRAM_BLOCK):
-        stop = min(start + GRAM_BLOCK, m)
-        torch.mm(matrix[start:stop], matrix[:stop].T, out=out[start:stop, :stop])
-    return out
-
-
-def _gram_solve(matrix: torch.Tensor, rhs: torch.Tensor, ridge: float) -> torch.Tensor:
-    """Solve (matrix matrix^T + ridge I) x = rhs in float64 by Cholesky, the product built as
-    its lower triangle (:func:`_lower_gram`, float32 products): half the FLOPs and, for the
-    solve, a third of LU's. Where rounding made the float32 system not positive definite
-    (a tiny ridge on a singular Gram matrix), it falls back to LU on the symmetrised system.
-
-    :param matrix: (m, k) any float dtype and strides
-    :param rhs: (m,) right-hand side
-    :param ridge: lambda, in the units of the Gram matrix
-    :return: (m,) float64 solution
-    """
-    system = _lower_gram(matrix).double()
-    system.diagonal().add_(ridge)
-    factor, info = torch.linalg.cholesky_ex(system)
-    if int(info) == 0:
-        return torch.cholesky_solve(rhs.double().unsqueeze(1), factor).squeeze(1)
-    lower = system.tril_()
-    return torch.linalg.solve(lower + lower.tril(-1).T, rhs.double())
-
-
-def _transposed_product(matrix: torch.Tensor, vector: torch.Tensor, rows: int = 128) -> torch.Tensor:
-    """matrix^T vector in float64, a block of rows at a time (no float64 copy of the whole matrix).
-
-    :param matrix: (n, p)
-    :param vector: (n,) float64
-    :return: (p,) float64
-    """
-    out = torch.zeros(matrix.shape[1], dtype=torch.float64, device=matrix.device)
-    for start in range(0, matrix.shape[0], rows):
-        out += matrix[start : start + rows].T.double() @ vector[start : start + rows]
-    return out
 
 
 def _ridge(diagonal_sum: torch.Tensor, width: int, l2: float) -> float:
@@ -127,9 +66,9 @@ def bellman_residual_weights(
     n, p = residual_map.shape
     ridge = _ridge(torch.linalg.vector_norm(residual_map).square(), p, l2)
     if n >= p:
-        weights = _gram_solve(residual_map.T, residual_map.T @ rewards.to(residual_map.dtype), ridge)
+        weights = gram_solve(residual_map.T, residual_map.T @ rewards.to(residual_map.dtype), ridge)
     else:
-        weights = _transposed_product(residual_map, _gram_solve(residual_map, rewards, ridge))
+        weights = transposed_product(residual_map, gram_solve(residual_map, rewards, ridge))
     return weights.to(phi.dtype)
 
 
@@ -149,9 +88,9 @@ def lstd_weights(phi: torch.Tensor, next_phi: torch.Tensor, rewards: torch.Tenso
     n, p = phi.shape
     ridge = _ridge((phi64 * residual_map).sum(0).abs().sum(), p, l2)
     if n >= p:
-        weights = _ridge_solve(phi64.T @ residual_map, phi64.T @ rewards.double(), ridge)
+        weights = ridge_solve(phi64.T @ residual_map, phi64.T @ rewards.double(), ridge)
     else:
-        weights = phi64.T @ _ridge_solve(residual_map @ phi64.T, rewards, ridge)
+        weights = phi64.T @ ridge_solve(residual_map @ phi64.T, rewards, ridge)
     return weights.to(phi.dtype)
 
 

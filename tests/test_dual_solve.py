@@ -4,14 +4,7 @@ import pytest
 import torch
 
 from cme_agent.config import EvaluationConfig, build_config, collection_size_for
-from cme_agent.planning import (
-    GRAM_BLOCK,
-    _gram_solve,
-    _lower_gram,
-    bellman_residual_descent,
-    bellman_residual_weights,
-    lstd_weights,
-)
+from cme_agent.planning import bellman_residual_descent, bellman_residual_weights, lstd_weights
 
 
 def _rbf(x: torch.Tensor, points: int) -> torch.Tensor:
@@ -115,24 +108,3 @@ def test_float32_rewards_with_float64_features_are_accepted():
         assert solver(phi, next_phi, rewards.float(), 0.9, 1e-4).dtype == torch.float64
     initial = torch.zeros(phi.shape[1], dtype=torch.float64)
     assert torch.isfinite(bellman_residual_descent(phi, next_phi, rewards.float(), 0.9, 1e-4, initial, 5)).all()
-
-
-@pytest.mark.parametrize("rows", [1, 255, 256, 700])  # one block, a block exactly, ragged blocks
-def test_lower_gram_is_the_lower_triangle_of_the_product(rows):
-    matrix = torch.randn(rows, 37, generator=torch.Generator().manual_seed(rows))
-    lower = _lower_gram(matrix)
-    full = matrix @ matrix.T
-    blocks = torch.arange(rows) // GRAM_BLOCK
-    on_or_below = blocks[:, None] >= blocks[None, :]  # block rows at or below the diagonal
-    assert torch.allclose(lower[on_or_below], full[on_or_below], atol=1e-4)
-    assert torch.allclose(_lower_gram(matrix.T.contiguous().T), lower, atol=1e-4)  # any strides
-
-
-@pytest.mark.parametrize("rank, ridge", [(40, 1e-3), (5, 0.0)])  # positive definite; singular: the LU fallback
-def test_gram_solve_equals_the_full_system(rank, ridge):
-    generator = torch.Generator().manual_seed(rank)
-    matrix = (torch.randn(300, rank, generator=generator) @ torch.randn(rank, 40, generator=generator)).T  # (40, 300)
-    rhs = matrix.double() @ torch.randn(300, dtype=torch.float64, generator=generator)  # in the range: consistent
-    solution = _gram_solve(matrix, rhs, ridge)
-    system = matrix.double() @ matrix.double().T + ridge * torch.eye(40, dtype=torch.float64)
-    assert torch.allclose(system @ solution, rhs, rtol=1e-3, atol=1e-3 * float(rhs.abs().max()))

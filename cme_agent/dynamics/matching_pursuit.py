@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import torch
 
+from cme_agent.linalg import transposed_product
+
 
 @dataclass
 class PursuitResult:
@@ -46,14 +48,14 @@ def matching_pursuit(
     :return: the picked atoms and their weights
     """
     dtype = atoms.dtype
-    G, R = atoms.double(), residual.double()
+    G = atoms.double()
     norms = (G * G).sum(0)
     # negligible atoms are never picked: relative to the largest, and absolutely, where 1 / ||G_j||^2
     # would overflow the weights' dtype (sqrt of its smallest normal number, ~1e-19 for float32)
     floor = max(float(norms.max()) * 1e-12, torch.finfo(dtype).tiny ** 0.5)
     usable = norms > floor
-    C = G.T @ R
-    energy_before = float((R * R).sum())
+    C = transposed_product(G, residual)  # float64, no float64 copy of the (n, p) residual
+    energy_before = float(torch.linalg.vector_norm(residual, dtype=torch.float64).square())
     energy = energy_before
     picked: dict[int, torch.Tensor] = {}
     for _ in range(max_atoms):  # no (c, p) temporary per pick: the updates are in place
@@ -71,6 +73,7 @@ def matching_pursuit(
         return PursuitResult(indices, residual.new_zeros(0, residual.shape[1]), energy_before, energy_before)
     weights = torch.stack([picked[j] for j in indices.tolist()])
     if orthogonal:
+        R = residual.double()
         weights = _least_squares_refit(G[:, indices], R)
         energy = float(((R - G[:, indices] @ weights) ** 2).sum())
     return PursuitResult(indices, weights.to(dtype), energy_before, min(energy, energy_before))

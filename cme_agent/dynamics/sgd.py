@@ -15,11 +15,12 @@ def sgd_step(weights: torch.Tensor, psi: torch.Tensor, targets: torch.Tensor, le
 
     :param weights: (p, q) the model B, updated in place
     :param psi: (b, q) features psi(s_j, a_j) of the minibatch
-    :param targets: (b, p) regression targets y_j (phi(s'_j), or phi(s'_j) - phi(s_j))
+    :param targets: (b, p) regression targets y_j (phi(s'_j), or phi(s'_j) - phi(s_j));
+        overwritten (the step's error is computed in their place: no copy, no allocation)
     :param learning_rate: normalised step in (0, 2)
     :param l2: ridge coefficient lambda
     """
     mean_sq_norm = torch.linalg.vector_norm(psi).square() / psi.shape[0]
     eta = learning_rate / mean_sq_norm.clamp_min(1e-12)  # a 0-dim tensor: no host synchronisation
-    error = torch.addmm(targets, psi, weights.T, alpha=-1).mul_(eta / psi.shape[0])
+    error = targets.addmm_(psi, weights.T, alpha=-1).mul_(eta / psi.shape[0])
     weights.mul_(1 - eta * l2).addmm_(error.T, psi)
