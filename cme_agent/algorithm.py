@@ -61,6 +61,10 @@ from cme_agent.rewards import RewardSpec, StepReward, resolve_reward
 
 SelfCME = TypeVar("SelfCME", bound="CMEPolicyIteration")
 
+EXPANSION_REFIT_SIZE = 20_000
+"""Transitions of D that B is refit on when the observation box expands (the refit costs
+O(N q^2) once, about a second at q = 2,000)."""
+
 
 def _check_spaces(observation_space: spaces.Space, action_space: spaces.Space) -> None:
     """Refuse, naming the space, what the agent cannot handle."""
@@ -318,7 +322,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         :param new_data: the transitions this iteration collected (already in the store D)
         """
         self.iteration += 1
-        self._fit_normalisation()
+        self._fit_observation_box(new_data)
         self.feature_selection(new_data)
         self.model_update()
         for _ in range(self.evaluation_config.rounds):
@@ -326,13 +330,34 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             value_weights = self.policy_evaluation(collection)
             self.policy_improvement(value_weights, collection)
 
-    def _fit_normalisation(self) -> None:
+    def _fit_observation_box(self, new_data: Transitions) -> None:
         """Observation dims without usable bounds get their box from the data so far (the random
-        phase), once: the kernels of psi and phi are defined on it, so it is frozen from then on."""
+        phase). Later, when more than ``observation.expand_outside`` of an iteration's new
+        observations fall outside it, the box is expanded to cover D (at most
+        ``observation.max_expansions`` times): psi's centres keep their place, B is refit on a
+        sample of D and planning restarts (Q's weights belonged to the old phi).
+
+        :param new_data: the transitions of this iteration
+        """
         encoder = self.dynamics.obs_encoder
         if encoder.needs_fit:
-            data = [store.get(slice(0, len(store))) for store in (self.store, self.holdout) if len(store) > 0]
-            self.logger.info(encoder.fit(torch.cat([tensor for batch in data for tensor in (batch.obs, batch.next_obs)])))
+            self.logger.info(encoder.fit(self._observed_states()))
+            return
+        config = encoder.config
+        if not encoder.fit_dims or int(encoder.expansions) >= config.max_expansions or len(new_data) == 0:
+            return
+        if encoder.outside_share(torch.cat([new_data.obs, new_data.next_obs])) <= config.expand_outside:
+            return
+        sample = self.store.sample(min(len(self.store), EXPANSION_REFIT_SIZE), self._torch_rng)
+        self.logger.info(self.dynamics.expand_observation_box(self._observed_states(), sample, self.model_update_config.l2))
+        self.policy.restart()
+        self._value_weights = None
+        self.logger.record("train/observation_box_expansions", int(encoder.expansions))
+
+    def _observed_states(self) -> torch.Tensor:
+        """(2 |D|, obs_dim): every state and successor of D and of the held-out transitions."""
+        data = [store.get(slice(0, len(store))) for store in (self.store, self.holdout) if len(store) > 0]
+        return torch.cat([tensor for batch in data for tensor in (batch.obs, batch.next_obs)])
 
     def _make_behaviour(self) -> BehaviourPolicy:
         return BehaviourPolicy(self.action_space, self.exploration_config, self._np_rng, self.n_envs)

@@ -34,6 +34,10 @@ class Transitions:
     def __len__(self) -> int:
         return int(self.rewards.shape[0])
 
+    def __getitem__(self, rows: slice) -> Transitions:
+        """The transitions of a slice of rows (views, no copy)."""
+        return Transitions(*(tensor[rows] for tensor in vars(self).values()))
+
     def concat(self, other: Transitions) -> Transitions:
         """This batch followed by ``other``."""
         pairs = zip(vars(self).values(), vars(other).values(), strict=True)

@@ -412,6 +412,11 @@ class ObservationConfig:
     :param margin: widening of the estimated box on each side, as a fraction of its range
     :param max_half_range: space bounds with a wider half-range (env units) are treated as
         unknown
+    :param expand_outside: when more than this share of an iteration's new observations lies
+        outside the estimated box (in some estimated dim), the box is expanded to cover D, the
+        model carried into the new coordinates (psi's centres moved, B refit on D) and planning
+        restarted (:meth:`cme_agent.dynamics.CMEDynamics.expand_observation_box`); in (0, 1]
+    :param max_expansions: at most this many expansions per run (0: the first box is final)
     """
 
     low: tuple[float, ...] | None = None
@@ -420,6 +425,8 @@ class ObservationConfig:
     quantile: float = 0.01
     margin: float = 0.1
     max_half_range: float = 1e3
+    expand_outside: float = 0.05
+    max_expansions: int = 4
 
     def __post_init__(self) -> None:
         for name, bound in (("observation.low", self.low), ("observation.high", self.high)):
@@ -447,6 +454,13 @@ class ObservationConfig:
         )
         check_non_negative("observation.margin", self.margin)
         check_positive("observation.max_half_range", self.max_half_range)
+        check_unit_interval("observation.expand_outside", self.expand_outside, open_low=True)
+        check(
+            "observation.max_expansions",
+            self.max_expansions,
+            isinstance(self.max_expansions, int) and not isinstance(self.max_expansions, bool) and self.max_expansions >= 0,
+            "an integer >= 0",
+        )
 
 
 def _as_tuple(value: Any) -> Any:

@@ -1,10 +1,11 @@
 """Normalised encodings of observations and actions, shared by phi, psi and the C sampler.
 
 Every observation dimension is mapped affinely to [-1, 1] from configured or space bounds,
-or, where neither is usable (infinite or absurdly wide bounds), from a box estimated once from
-the first data and then frozen; an angle given as a (cos, sin) pair stays as is for psi, and
-becomes one periodic coordinate (angle / pi in [-1, 1)) for the grid of phi. Box actions are
-mapped to [-1, 1], Discrete actions to one-hot vectors.
+or, where neither is usable (infinite or absurdly wide bounds), from a box estimated from the
+first data (and expanded, a few times at most, when later data outgrows it); an angle given as
+a (cos, sin) pair stays as is for psi, and becomes one periodic coordinate (angle / pi in
+[-1, 1)) for the grid of phi. Box actions are mapped to [-1, 1], Discrete actions to one-hot
+vectors.
 """
 
 from __future__ import annotations
@@ -44,8 +45,9 @@ class ObservationEncoder(torch.nn.Module):
     Bounds come from ``config.low/high`` where given, else from the space where usable
     (finite, half-range at most ``config.max_half_range``). The remaining dims are estimated by
     :meth:`fit` from the first data; until then :attr:`needs_fit` is True and normalising
-    raises. The box (``center``, ``half_range``) and the ``fitted`` flag are buffers, so a
-    fitted box is saved and loaded with the state dict.
+    raises; :meth:`expand` widens them later. The box (``center``, ``half_range``), the
+    ``fitted`` flag and the count of ``expansions`` are buffers, so a fitted box is saved and
+    loaded with the state dict.
 
     :param space: the observation space (a 1-D ``Box``)
     :param config: bounds, angle pairs and how to estimate missing bounds
@@ -71,8 +73,13 @@ class ObservationEncoder(torch.nn.Module):
         self.register_buffer("center", torch.as_tensor((high + low) / 2, dtype=torch.float32))
         self.register_buffer("half_range", torch.as_tensor((high - low) / 2, dtype=torch.float32))
         self.register_buffer("fitted", torch.tensor(not self.fit_dims))
+        self.register_buffer("expansions", torch.zeros((), dtype=torch.long))
         self._ready = not self.fit_dims
         self.register_load_state_dict_post_hook(ObservationEncoder._after_load)
+
+    def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
+        state_dict.setdefault(prefix + "expansions", torch.zeros((), dtype=torch.long))  # files before expand()
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     @staticmethod
     def _after_load(module: torch.nn.Module, incompatible_keys: Any) -> None:
@@ -92,7 +99,8 @@ class ObservationEncoder(torch.nn.Module):
         of their range on each side, clipped to the space's bound where that side is finite;
         a constant dim gets the half-range ``1e-3 max(1, |value|)``. At most 100,000 evenly
         spaced rows are used. A second call is refused: phi's centres and psi's kernels are
-        placed in the frozen coordinates.
+        placed in the frozen coordinates (:meth:`expand` widens a fitted box, for a caller that
+        moves them).
 
         :param obs: (N, obs_dim) observations in env units (N >= 1), e.g. the states and
             successors of the random phase
@@ -102,6 +110,52 @@ class ObservationEncoder(torch.nn.Module):
             raise RuntimeError(
                 "the observation box is already fitted (or given) and frozen: phi and psi live in its coordinates"
             )
+        lower, upper = self._estimate(obs)
+        self._set_box(lower, upper)
+        self.fitted.fill_(True)
+        self._ready = True
+        q = self.config.quantile
+        return (
+            f"observation box estimated from {obs.shape[0]} observations (quantiles {q:g}..{1 - q:g}, "
+            f"margin {self.config.margin:g}) for dims {self._describe()}; expanded if later data falls outside "
+            f"(at most observation.max_expansions={self.config.max_expansions} times); "
+            f"to give it yourself pass {PYTHON_BOUNDS_HINT}"
+        )
+
+    def expand(self, obs: torch.Tensor) -> str:
+        """Widen the estimated box to cover new observations: per estimated dim, the union of
+        the current box and the box :meth:`fit` would estimate from ``obs``. It never shrinks,
+        so whatever was inside stays inside; given and space bounds never change. The caller
+        moves whatever lives in the normalised coordinates (psi's centres, B: see
+        :meth:`~cme_agent.dynamics.CMEDynamics.expand_observation_box`).
+
+        :param obs: (N, obs_dim) observations in env units, e.g. all of D
+        :return: a one-line description of the new box, for the log
+        """
+        if self.needs_fit or not self.fit_dims:
+            raise RuntimeError("only a fitted box of estimated dims can be expanded: fit() it first")
+        lower, upper = self._estimate(obs)
+        index = torch.as_tensor(self.fit_dims)
+        center, half = self.center[index].double().cpu(), self.half_range[index].double().cpu()
+        self._set_box(torch.minimum(lower, center - half), torch.maximum(upper, center + half))
+        self.expansions.add_(1)
+        return (
+            f"observation box expanded to cover {obs.shape[0]} observations (expansion {int(self.expansions)}) "
+            f"for dims {self._describe()}"
+        )
+
+    def outside_share(self, obs: torch.Tensor) -> float:
+        """Share of observations outside the box in some estimated dim (0 when no dim is estimated).
+
+        :param obs: (N, obs_dim) observations in env units
+        """
+        if not self.fit_dims or obs.shape[0] == 0:
+            return 0.0
+        z = self.normalize(obs)[:, self.fit_dims]
+        return float((z.abs() > 1).any(dim=1).float().mean())
+
+    def _estimate(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The quantile box of :meth:`fit` over the estimated dims: lower and upper (len(fit_dims),) float64."""
         if obs.ndim != 2 or obs.shape[1] != self.dim or obs.shape[0] == 0:
             raise ValueError(f"fit needs (N >= 1, {self.dim}) observations, got shape {tuple(obs.shape)}")
         rows = torch.linspace(0, obs.shape[0] - 1, min(obs.shape[0], MAX_FIT_ROWS)).round().long()
@@ -118,19 +172,20 @@ class ObservationEncoder(torch.nn.Module):
         space_high = torch.as_tensor(self.space_high[self.fit_dims])
         lower = torch.where(torch.isfinite(space_low), torch.maximum(lower, space_low), lower)
         upper = torch.where(torch.isfinite(space_high), torch.minimum(upper, space_high), upper)
+        return lower, upper
+
+    def _set_box(self, lower: torch.Tensor, upper: torch.Tensor) -> None:
         center = (upper + lower) / 2
         half_range = torch.maximum((upper - lower) / 2, 1e-3 * center.abs().clamp_min(1.0))
         index = torch.as_tensor(self.fit_dims, device=self.center.device)
         self.center[index] = center.to(self.center)
         self.half_range[index] = half_range.to(self.half_range)
-        self.fitted.fill_(True)
-        self._ready = True
+
+    def _describe(self) -> str:
+        index = torch.as_tensor(self.fit_dims, device=self.center.device)
+        center, half_range = self.center[index].tolist(), self.half_range[index].tolist()
         boxes = [f"{d}: [{c - h:.4g}, {c + h:.4g}]" for d, c, h in zip(self.fit_dims, center, half_range, strict=True)]
-        box = ", ".join(boxes[:LOGGED_DIMS]) + (f" and {len(boxes) - LOGGED_DIMS} more" if len(boxes) > LOGGED_DIMS else "")
-        return (
-            f"observation box estimated from {obs.shape[0]} observations (quantiles {q:g}..{1 - q:g}, "
-            f"margin {self.config.margin:g}) and frozen for dims {box}; to give it yourself pass {PYTHON_BOUNDS_HINT}"
-        )
+        return ", ".join(boxes[:LOGGED_DIMS]) + (f" and {len(boxes) - LOGGED_DIMS} more" if len(boxes) > LOGGED_DIMS else "")
 
     def _check_ready(self) -> None:
         if not self._ready:

@@ -139,6 +139,17 @@ class KernelBank(nn.Module):
         self.inv_two_sq_bandwidth = torch.cat([self.inv_two_sq_bandwidth, (1 / (2 * bandwidths**2)).to(self.centres)])
         self.version += 1
 
+    def move_states(self, scale: torch.Tensor, shift: torch.Tensor) -> None:
+        """Re-express the state part of the centres in new normalised coordinates,
+        ``z_s <- scale * z_s + shift`` (the same env-unit centres after the box changed);
+        bandwidths stay in normalised units.
+
+        :param scale: (state_dim,) old half-range / new half-range
+        :param shift: (state_dim,) (old centre - new centre) / new half-range
+        """
+        self.centres[:, : self.state_dim].mul_(scale.to(self.centres)).add_(shift.to(self.centres))
+        self.version += 1
+
     def _apply(self, fn: Any, recurse: bool = True) -> KernelBank:
         """``to()``, ``double()``, ...: the tensors change, so do the caches built from them."""
         self.version += 1

@@ -408,6 +408,14 @@ class CMEPolicy(BasePolicy):
         return (actions if vectorized else actions.squeeze(axis=0)), state
 
     # ------------------------------------------------------------------ improvement
+    def restart(self) -> None:
+        """Forget Q (theta_phi, theta_psi = 0, the soft average's count and beta_k), as before the
+        first improvement: after the model moved to new coordinates, the old weights mean nothing."""
+        self.theta_phi = torch.zeros_like(self.theta_phi)
+        self.theta_psi = self.theta_psi.new_zeros(0)
+        self.improvements.zero_()
+        self.inverse_temperature.zero_()
+
     def improve(self, value_weights: torch.Tensor, gamma: float, omega: float, states: torch.Tensor | None = None) -> None:
         """Policy improvement on the linear weights of Q, with
         ``Q^_k(s, a) = r(s, a) + gamma <w_k, E_model[phi~(S') | s, a]>``:

@@ -61,7 +61,7 @@ def test_sgd_update_is_consecutive_steps_of_equation_6(target_elements, monkeypa
     dynamics.grow(z, torch.full((30,), 0.5), torch.zeros(dynamics.weights.shape[0], 30))
     reference = dynamics.weights.clone()
     for step in range(0, 400, 20):
-        part = Transitions(*(tensor[step : step + 20] for tensor in vars(data).values()))
+        part = data[step : step + 20]
         psi, targets = dynamics.regression_data(part)
         sgd_step(reference, psi, targets, 0.5, 1e-4)
     dynamics.sgd_update(data, batch_size=20, learning_rate=0.5, l2=1e-4)

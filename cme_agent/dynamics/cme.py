@@ -43,6 +43,10 @@ TARGET_ELEMENTS = 2**22
 preset: p = 2,836) the targets of all 200 minibatches would take about 300 MB, three times over."""
 
 
+REFIT_ROWS = 4096
+"""Rows of psi built at once by :meth:`CMEDynamics.refit_weights` (32 MiB of float32 at q = 2,000)."""
+
+
 def _zero_reward(obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
     return torch.zeros(obs.shape[0], dtype=obs.dtype, device=obs.device)
 
@@ -159,12 +163,48 @@ class CMEDynamics(nn.Module):
         buffer = self.weights.new_empty(min(batch_size, len(batches)), self.q)
         span = batch_size * max(1, TARGET_ELEMENTS // (batch_size * self.weights.shape[0]))  # bounded memory for wide phi
         for start in range(0, len(batches), span):
-            targets = self.targets(Transitions(*(tensor[start : start + span] for tensor in vars(batches).values())))
+            targets = self.targets(batches[start : start + span])
             for step in range(0, len(targets), batch_size):
                 step_targets = targets[step : step + batch_size]
                 rows = slice(start + step, start + step + len(step_targets))
                 psi = kernel_from_points(points[rows], weights, out=buffer[: len(step_targets)])
                 sgd_step(self.weights, psi, step_targets, learning_rate, l2)
+
+    def refit_weights(self, batch: Transitions, l2: float) -> None:
+        """B by ridge regression on a batch, ``B^T = (Psi^T Psi + (N l2 + eps) I)^{-1} Psi^T Y``
+        (loss (4) with the ridge of eq. (6)), the normal equations accumulated in float64 a
+        block of rows at a time (eps = 1e-6 of their mean diagonal keeps the solve defined).
+
+        :param batch: N transitions (e.g. a sample of D)
+        :param l2: ridge coefficient lambda
+        """
+        gram = self.weights.new_zeros(self.q, self.q, dtype=torch.float64)
+        cross = self.weights.new_zeros(self.q, self.weights.shape[0], dtype=torch.float64)
+        for start in range(0, len(batch), REFIT_ROWS):
+            psi, targets = self.regression_data(batch[start : start + REFIT_ROWS])
+            gram += (psi.T @ psi).double()
+            cross += (psi.T @ targets).double()
+        gram.diagonal().add_(len(batch) * l2 + 1e-6 * float(gram.diagonal().mean().clamp_min(1e-12)))
+        self.weights = torch.linalg.solve(gram, cross).T.to(self.weights)
+
+    def expand_observation_box(self, obs: torch.Tensor, batch: Transitions, l2: float) -> str:
+        """Widen the estimated observation box to cover ``obs`` (:meth:`ObservationEncoder.expand`)
+        and carry the model into the new coordinates: psi's centres keep their env-unit
+        positions (:meth:`KernelBank.move_states`), phi follows the box by construction, and B,
+        whose targets phi changed, is refit on ``batch`` (:meth:`refit_weights`).
+
+        :param obs: (N, obs_dim) observations the box must cover, env units
+        :param batch: transitions B is refit on
+        :param l2: ridge coefficient of the refit
+        :return: the encoder's log line
+        """
+        encoder = self.obs_encoder
+        center, half_range = encoder.center.clone(), encoder.half_range.clone()
+        message = encoder.expand(obs)
+        self.psi.move_states(half_range / encoder.half_range, (center - encoder.center) / encoder.half_range)
+        if self.q > 0:
+            self.refit_weights(batch, l2)
+        return message
 
     def dictionary(self, z: torch.Tensor, centres: torch.Tensor, bandwidths: torch.Tensor) -> torch.Tensor:
         """The candidate atoms of eq. (5): Gaussian kernels centred at ``centres`` at every bandwidth.
