@@ -1,6 +1,8 @@
 """Matching pursuit (eq. (5)): never raises the loss, finds the atoms that explain the residual,
 stops when nothing helps."""
 
+import sys
+
 import pytest
 import torch
 
@@ -77,3 +79,20 @@ def test_a_negligible_atom_gets_no_infinite_weight():
     atoms = torch.tensor([[1.1754944e-38], [0.0], [0.0], [0.0], [0.0]])
     result = matching_pursuit(atoms, torch.randn(5, 1, generator=torch.Generator().manual_seed(0)), 0.25, max_atoms=10)
     assert len(result.indices) == 0 and torch.isfinite(result.weights).all()
+
+
+@pytest.mark.parametrize("orthogonal", [False, True])
+def test_running_every_pick_after_the_stop_changes_nothing(orthogonal, monkeypatch):
+    """A GPU runs all max_atoms picks (no synchronisation to read the stopping flag); the picks
+    after the stopping rule held must add nothing."""
+    generator = torch.Generator().manual_seed(4)
+    atoms = torch.exp(-torch.rand(300, 120, generator=generator) * 5)
+    residual = atoms[:, :4] @ torch.randn(4, 7, generator=generator) + 0.01 * torch.randn(300, 7, generator=generator)
+    early = matching_pursuit(atoms, residual, threshold=0.02, max_atoms=60, orthogonal=orthogonal)
+    assert 0 < len(early.indices) < 60  # the rule stops it before the cap
+    module = sys.modules["cme_agent.dynamics.matching_pursuit"]  # the package exports a function of that name
+    monkeypatch.setattr(module, "_stops_early", lambda device: False)
+    every = matching_pursuit(atoms, residual, threshold=0.02, max_atoms=60, orthogonal=orthogonal)
+    assert torch.equal(every.indices, early.indices)
+    assert torch.equal(every.weights, early.weights)
+    assert every.energy_after == early.energy_after and every.energy_before == early.energy_before

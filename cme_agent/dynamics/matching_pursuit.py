@@ -52,31 +52,40 @@ def matching_pursuit(
     norms = (G * G).sum(0)
     # negligible atoms are never picked: relative to the largest, and absolutely, where 1 / ||G_j||^2
     # would overflow the weights' dtype (sqrt of its smallest normal number, ~1e-19 for float32)
-    floor = max(float(norms.max()) * 1e-12, torch.finfo(dtype).tiny ** 0.5)
-    usable = norms > floor
+    floor = (norms.max() * 1e-12).clamp_min(torch.finfo(dtype).tiny ** 0.5)
+    inverse_norms = torch.where(norms > floor, 1 / norms.clamp_min(1e-300), 0.0)
     C = transposed_product(G, residual)  # float64, no float64 copy of the (n, p) residual
-    energy_before = float(torch.linalg.vector_norm(residual, dtype=torch.float64).square())
-    energy = energy_before
-    picked: dict[int, torch.Tensor] = {}
-    for _ in range(max_atoms):  # no (c, p) temporary per pick: the updates are in place
-        scores = torch.where(usable, torch.linalg.vector_norm(C, dim=1).square_() / norms.clamp_min(1e-300), 0.0)
-        j = int(torch.argmax(scores))
-        score = float(scores[j])
-        if score <= 0 or score < threshold * energy:
+    energy_before = torch.linalg.vector_norm(residual, dtype=torch.float64).square()
+    energy = energy_before.clone()
+    weights = torch.zeros_like(C)  # (c, p): summed weights of each atom (an atom may be picked again)
+    picked = torch.zeros(C.shape[0], dtype=torch.bool, device=C.device)
+    active = torch.ones((), dtype=torch.bool, device=C.device)
+    for _ in range(max_atoms):  # no host synchronisation on a GPU, no (c, p) temporary per pick
+        score, j = torch.max(torch.linalg.vector_norm(C, dim=1).square_().mul_(inverse_norms), dim=0)
+        active &= (score > 0) & (score >= threshold * energy)
+        if _stops_early(C.device) and not active:
             break
-        b = C[j] / norms[j]
-        C.addr_(G.T @ G[:, j], b, alpha=-1)
-        energy = max(energy - score, 0.0)
-        picked[j] = picked[j] + b if j in picked else b
-    indices = torch.tensor(sorted(picked), dtype=torch.long, device=atoms.device)
-    if not picked:
-        return PursuitResult(indices, residual.new_zeros(0, residual.shape[1]), energy_before, energy_before)
-    weights = torch.stack([picked[j] for j in indices.tolist()])
+        j = j.view(1)
+        b = C.index_select(0, j).mul_(inverse_norms[j] * active)  # (1, p), zero once stopped
+        C.addmm_(G.T @ G.index_select(1, j), b, alpha=-1)
+        weights.index_add_(0, j, b)
+        picked.index_put_((j,), active.view(1) | picked.index_select(0, j))
+        energy = torch.where(active, (energy - score).clamp_min(0), energy)
+    indices = picked.nonzero().squeeze(1)
+    if len(indices) == 0:
+        return PursuitResult(indices, residual.new_zeros(0, residual.shape[1]), float(energy_before), float(energy_before))
+    weights = weights[indices]
     if orthogonal:
         R = residual.double()
         weights = _least_squares_refit(G[:, indices], R)
-        energy = float(((R - G[:, indices] @ weights) ** 2).sum())
-    return PursuitResult(indices, weights.to(dtype), energy_before, min(energy, energy_before))
+        energy = ((R - G[:, indices] @ weights) ** 2).sum()
+    return PursuitResult(indices, weights.to(dtype), float(energy_before), float(torch.minimum(energy, energy_before)))
+
+
+def _stops_early(device: torch.device) -> bool:
+    """Whether the picks may stop as soon as the stopping rule holds: reading the flag is free on
+    the CPU, a host synchronisation on a GPU (which runs all ``max_atoms`` picks, zero after the stop)."""
+    return device.type == "cpu"
 
 
 def _least_squares_refit(selected: torch.Tensor, residual: torch.Tensor) -> torch.Tensor:
