@@ -8,6 +8,9 @@ The suite: InvertedPendulum-v5, InvertedDoublePendulum-v5 and Reacher-v5 (MuJoCo
 One job is (agent, env, seed), run in a fresh process (so its peak memory is its own):
 
 - ``cme``: ``CMEPolicyIteration("CMEPolicy", env_id, seed=seed)``, nothing else;
+- ``cme_frozen`` (an ablation, only with ``--agents cme_frozen``): the same with the observation
+  box frozen after the random phase, ``policy_kwargs={"observation": {"max_expansions": 0}}``
+  (the behaviour before the box expanded);
 - ``sac``: ``SAC("MlpPolicy", env_id, seed=seed)``, SB3's defaults (learning_starts=100,
   buffer_size=1e6, batch_size=256, train_freq=1, ...), on the CPU;
 - ``random``: uniform random actions, evaluated once on 100 episodes (a reference line).
@@ -51,8 +54,10 @@ from stable_baselines3.common.vec_env import VecEnv
 
 CUSTOM_ENV = "PointGoal2D-v0"
 ENVS = ("InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Reacher-v5", CUSTOM_ENV)
-AGENTS = ("cme", "sac", "random")
-LEARNERS = ("cme", "sac")
+AGENTS = ("cme", "cme_frozen", "sac", "random")
+LEARNERS = ("cme", "cme_frozen", "sac")
+SUITE_AGENTS = ("cme", "sac", "random")
+"""The suite's agents; ``cme_frozen`` is an ablation run on request (``--agents cme_frozen``)."""
 TARGET_ENV, TARGET_RETURN, TARGET_STEPS = "InvertedPendulum-v5", 950.0, 5_000
 """Issue 14: InvertedPendulum-v5 at or above 950 within 5,000 env steps."""
 EVAL_EPISODES = 10
@@ -146,10 +151,11 @@ def make_learner(agent: str, env_id: str, seed: int) -> Any:
     :param env_id: the Gymnasium id
     :param seed: the seed of the agent (and of its training env)
     """
-    if agent == "cme":
+    if agent in ("cme", "cme_frozen"):
         from cme_agent import CMEPolicyIteration
 
-        model = CMEPolicyIteration("CMEPolicy", env_id, seed=seed)
+        frozen = {"policy_kwargs": {"observation": {"max_expansions": 0}}} if agent == "cme_frozen" else {}
+        model = CMEPolicyIteration("CMEPolicy", env_id, seed=seed, **frozen)
     elif agent == "sac":
         from stable_baselines3 import SAC
 
@@ -227,7 +233,8 @@ def run_job(job: Job) -> str:
             record["evaluations"].append(row)
             save_record(job.path, record)
             print(f"{job.agent} {job.env} seed {job.seed} steps {row['steps']}: {row['return_mean']:.1f}", flush=True)
-        if job.agent == "cme":
+        if job.agent.startswith("cme"):
+            record["box_expansions"] = int(model.dynamics.obs_encoder.expansions)
             record["phi_width"] = int(model.dynamics.p)
             record["reward_source"] = model.reward_source
     record["complete"] = True
@@ -352,7 +359,7 @@ def summary_row(env: str, agent: str, runs: list[dict[str, Any]], random: float 
         f"{statistics.mean(row['train_cpu_seconds'] for row in last):.0f}",
         f"{peak:.0f}",
         f"eval {statistics.mean(row['eval_seconds'] for row in last):.0f} s/run"
-        + (f"; p = {runs[0]['phi_width']}, q = {last[0]['n_features']}" if agent == "cme" else ""),
+        + (f"; p = {runs[0]['phi_width']}, q = {last[0]['n_features']}" if agent.startswith("cme") else ""),
     ]
 
 
@@ -423,7 +430,7 @@ def plot(complete: dict[tuple[str, str], list[dict[str, Any]]], envs: list[str],
         print("matplotlib not installed: no figure (pip install -e '.[plots]')")
         return
     fig, axes = plt.subplots(1, len(envs), figsize=(4.5 * len(envs), 3.8), squeeze=False)
-    colours = {"cme": "tab:blue", "sac": "tab:orange"}
+    colours = {"cme": "tab:blue", "cme_frozen": "tab:grey", "sac": "tab:orange"}
     for ax, env in zip(axes[0], envs, strict=True):
         for agent, colour in colours.items():
             runs = complete.get((env, agent), [])
@@ -492,7 +499,7 @@ def report(envs: list[str], steps: int, out: Path) -> None:
         for run in runs
         if not run["complete"]
     ]
-    planned = [Job(agent, env, seed, steps, 0, str(out)) for seed in (0, 1, 2) for agent in AGENTS for env in envs]
+    planned = [Job(agent, env, seed, steps, 0, str(out)) for seed in (0, 1, 2) for agent in SUITE_AGENTS for env in envs]
     missing = [f"{job.agent} {job.env} seed {job.seed}" for job in planned if load_record(job.path) is None]
     done = ", ".join(
         f"{agent} {env} seeds {sorted(run['job']['seed'] for run in group)}"
@@ -539,7 +546,7 @@ def report(envs: list[str], steps: int, out: Path) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--agents", nargs="+", default=list(AGENTS), choices=AGENTS)
+    parser.add_argument("--agents", nargs="+", default=list(SUITE_AGENTS), choices=AGENTS)
     parser.add_argument("--envs", nargs="+", default=list(ENVS), choices=ENVS)
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--steps", type=int, default=20_000, help="env steps per run")
