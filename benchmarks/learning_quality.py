@@ -74,13 +74,28 @@ def train_with_evaluations(
     cfg = compose_config([f"env={env_name}", f"seed={seed}", "verbose=0", *overrides])
     model = build_agent(cfg, make_env(cfg))
     model.set_logger(configure(None, []) if logger is None else logger)
+    return evaluation_loop(model, lambda: make_eval_env(cfg), env_name, seed, budget, period, evaluate)
+
+
+def evaluation_loop(
+    model: Any,
+    make_evaluation_env: Callable[[], gym.Env],
+    env_name: str,
+    seed: int,
+    budget: int,
+    period: int,
+    evaluate: Callable[[Any, gym.Env], dict[str, float]],
+) -> list[dict[str, Any]]:
+    """Train ``model`` until it has taken ``budget`` env steps, pausing every ``period`` steps to
+    ``evaluate`` it on a fresh ``make_evaluation_env()``; one row per pause (with the training
+    seconds so far and q). ``env_name`` and ``seed`` label the rows."""
     rows, train_seconds = [], 0.0
     while model.num_timesteps < budget:
         start = time.perf_counter()
         model.learn(min(period, budget - model.num_timesteps), reset_num_timesteps=False)
         train_seconds += time.perf_counter() - start
         row = {"env": env_name, "seed": seed, "steps": model.num_timesteps, "iteration": getattr(model, "iteration", None)}
-        row.update(evaluate(model, make_eval_env(cfg)))
+        row.update(evaluate(model, make_evaluation_env()))
         row.update(n_features=getattr(model, "q", 0), train_seconds=round(train_seconds, 1))
         rows.append(row)
         print(
