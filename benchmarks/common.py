@@ -78,6 +78,19 @@ def write_report(stem: str, text: str, curves: list[list[dict[str, Any]]]) -> No
             writer.writerows(curve)
 
 
+def pyplot() -> Any:
+    """matplotlib.pyplot with the Agg backend, or None without matplotlib (extra ``plots``)."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib not installed: no figures (pip install -e '.[plots]')")
+        return None
+    return plt
+
+
 def plot_learning_curves(panels: dict[str, tuple[list[list[dict[str, Any]]], float, str]], filename: str) -> None:
     """One panel per entry: each run's evaluation returns, their mean, and a reference line;
     saved as results/<filename> with the command in the title. Needs matplotlib (extra ``plots``).
@@ -86,13 +99,8 @@ def plot_learning_curves(panels: dict[str, tuple[list[list[dict[str, Any]]], flo
         reference value; reference label)
     :param filename: the PNG file name
     """
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib not installed: no figure (pip install -e '.[plots]')")
+    plt = pyplot()
+    if plt is None:
         return
     fig, axes = plt.subplots(1, len(panels), figsize=(max(4.5 * len(panels), 7.0), 3.6), squeeze=False)
     for ax, (title, (runs, reference, reference_label)) in zip(axes[0], panels.items(), strict=True):

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import RESULTS, command_line, compose_config, resident_bytes
+from common import RESULTS, command_line, compose_config, pyplot, resident_bytes
 from hydra.utils import get_class
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import configure
@@ -107,12 +107,8 @@ def report(rows: list[dict[str, float]], steps: int, seed: int) -> None:
     )
     print(text)
     (RESULTS / "endurance.md").write_text(text)
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
+    plt = pyplot()
+    if plt is None:
         return
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.5))
     axes[0].plot(transitions, rss / 2**20, label="resident memory")

@@ -40,7 +40,7 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-from common import RESULTS, code_version, command_line, compose_config, markdown_table, resident_bytes
+from common import RESULTS, code_version, command_line, compose_config, markdown_table, pyplot, resident_bytes
 from learning_quality import TARGETS, episode_returns, train_with_evaluations
 from quadcopter_learning import controller_statistics, flight_statistics
 from stable_baselines3.common.logger import KVWriter, Logger
@@ -263,19 +263,6 @@ def growth_exponent(sizes: Sequence[float], seconds: Sequence[float]) -> float:
     exponent of a power law seconds ~ size^k (0: flat, 3: cubic)."""
     half = len(sizes) // 2
     return float(np.polyfit(np.log(sizes[half:]), np.log(np.maximum(seconds[half:], 1e-9)), 1)[0])
-
-
-def pyplot() -> Any:
-    """matplotlib.pyplot with the Agg backend, or None without matplotlib (extra ``plots``)."""
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib not installed: no figures (pip install -e '.[plots]')")
-        return None
-    return plt
 
 
 def save_figure(fig: Any, path: Path) -> None:

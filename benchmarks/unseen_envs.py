@@ -45,7 +45,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import torch
-from common import RESULTS, code_version, command_line, markdown_table, resident_bytes
+from common import RESULTS, code_version, command_line, markdown_table, pyplot, resident_bytes
 from gymnasium import spaces
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
@@ -421,13 +421,8 @@ def verdicts(complete: dict[tuple[str, str], list[dict[str, Any]]], steps: int) 
 
 def plot(complete: dict[tuple[str, str], list[dict[str, Any]]], envs: list[str], out: Path) -> None:
     """results/unseen_envs.png: one panel per env, each seed thin, the mean thick, random dashed."""
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib not installed: no figure (pip install -e '.[plots]')")
+    plt = pyplot()
+    if plt is None:
         return
     fig, axes = plt.subplots(1, len(envs), figsize=(4.5 * len(envs), 3.8), squeeze=False)
     colours = {"cme": "tab:blue", "cme_frozen": "tab:grey", "sac": "tab:orange"}
