@@ -22,6 +22,7 @@ policy's submodule ``dynamics``; the policy holds the Q weights and the action s
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import re
 import sys
@@ -54,10 +55,19 @@ from cme_agent.config import (
 from cme_agent.dynamics import CMEDynamics, matching_pursuit
 from cme_agent.exploration import BehaviourPolicy
 from cme_agent.persistence import PersistenceMixin, plain
-from cme_agent.planning import bellman_residual_descent, bellman_residual_rms, bellman_residual_weights, lstd_weights
-from cme_agent.policy import CMEPolicy
+from cme_agent.planning import (
+    FactoredResidual,
+    bellman_residual_descent,
+    bellman_residual_rms,
+    bellman_residual_weights,
+    factored_dual_weights,
+    factored_is_cheaper,
+    lstd_weights,
+)
+from cme_agent.policy import CMEPolicy, GreedyStep, SoftStep
 from cme_agent.presets import GROUPS, TOP_LEVEL_KEYS, apply_preset
 from cme_agent.rewards import RewardSpec, StepReward, resolve_reward
+from cme_agent.state_features import RBFGrid
 
 SelfCME = TypeVar("SelfCME", bound="CMEPolicyIteration")
 
@@ -562,16 +572,12 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         """
         config, dynamics = self.evaluation_config, self.dynamics
         with self._timed("policy_evaluation"):
+            if self._factored_evaluation(len(states)):
+                return self._factored_policy_evaluation(states)
             readout = dynamics.readout()  # psi is read block by block, never stored: (|C|, q) is the big array
-            if self.policy.soft:
-                step = self.policy.soft_step(states, readout)
-                next_phi, model_rewards = dynamics.read(step.phi, step.psi)
-                rewards = step.step_rewards + model_rewards
-                self._record_soft_policy(step.probabilities)
-            else:
-                step = self.policy.greedy_step(states, readout)
-                next_phi, model_rewards = dynamics.read(step.phi, step.psi)
-                rewards = dynamics.reward.step_reward(states, step.actions) + model_rewards
+            step = self._policy_step(states, readout)
+            next_phi, model_rewards = dynamics.read(step.phi, step.psi)
+            rewards = self._step_rewards(states, step) + model_rewards
             phi = step.phi
             if config.solver == "gd":
                 initial = self._value_weights if self._value_weights is not None else torch.zeros_like(phi[0])
@@ -580,11 +586,52 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
                 weights = lstd_weights(phi, next_phi, rewards, self.gamma, config.l2)
             else:
                 weights = bellman_residual_weights(phi, next_phi, rewards, self.gamma, config.l2)
-            self._value_weights = weights
-            self.logger.record("train/bellman_residual", bellman_residual_rms(phi, next_phi, rewards, self.gamma, weights))
-            self.logger.record("train/q_mean", float(step.values.mean()))
-            self.logger.record("train/value_mean", float((phi @ weights).mean()))
+            self._record_evaluation(step, weights, bellman_residual_rms(phi, next_phi, rewards, self.gamma, weights))
             return weights
+
+    def _factored_evaluation(self, size: int) -> bool:
+        """Whether eq. (7) is solved on the factors of its residual map
+        (:class:`~cme_agent.planning.FactoredResidual`): the exact Bellman residual in its dual
+        form (|C| < p), with a phi whose Gram matrix is cheap (an RBF grid), where that costs less."""
+        config = self.evaluation_config
+        return (
+            config.method == "bellman_residual"
+            and config.solver == "lstsq"
+            and isinstance(self.dynamics.phi, RBFGrid)
+            and factored_is_cheaper(size, self.dynamics.p, self.dynamics.q)
+        )
+
+    def _factored_policy_evaluation(self, states: torch.Tensor) -> torch.Tensor:
+        """:meth:`policy_evaluation` on the factors of A = Phi_C - gamma Phi'_C: psi (|C|, q) is
+        kept instead of Phi'_C (|C|, p), and A A^T is built from the RBF grid's Gram matrix."""
+        dynamics = self.dynamics
+        step = self._policy_step(states, None)
+        rewards = self._step_rewards(states, step) + dynamics.linear_reward(step.phi, step.psi)
+        gram = functools.partial(dynamics.phi.gram, states)
+        residual = FactoredResidual(step.phi, gram, step.psi, dynamics.phi_weights, self.gamma, dynamics.feature_dynamics)
+        weights = factored_dual_weights(residual, rewards, self.evaluation_config.l2)
+        rms = float(residual.matvec(weights).sub_(rewards).square_().mean().sqrt())
+        self._record_evaluation(step, weights, rms)
+        return weights
+
+    def _policy_step(self, states: torch.Tensor, readout: torch.Tensor | None) -> GreedyStep | SoftStep:
+        """The policy's step on C (greedy, or soft with its entropy logged), psi read through ``readout``."""
+        if not self.policy.soft:
+            return self.policy.greedy_step(states, readout)
+        step = self.policy.soft_step(states, readout)
+        self._record_soft_policy(step.probabilities)
+        return step
+
+    def _step_rewards(self, states: torch.Tensor, step: GreedyStep | SoftStep) -> torch.Tensor:
+        """The known step reward at the policy's actions on C (its expectation for the soft policy): (|C|,)."""
+        return step.step_rewards if isinstance(step, SoftStep) else self.dynamics.reward.step_reward(states, step.actions)
+
+    def _record_evaluation(self, step: GreedyStep | SoftStep, weights: torch.Tensor, residual_rms: float) -> None:
+        """Keep w for the warm start and log the Bellman residual, the mean Q and the mean V on C."""
+        self._value_weights = weights
+        self.logger.record("train/bellman_residual", residual_rms)
+        self.logger.record("train/q_mean", float(step.values.mean()))
+        self.logger.record("train/value_mean", float((step.phi @ weights).mean()))
 
     def _record_soft_policy(self, probabilities: torch.Tensor) -> None:
         """Log the soft policy's mean entropy on C (nats; log K is uniform) and its beta_k."""

@@ -13,6 +13,8 @@ Shapes: m the size of the system, k the inner dimension of a Gram product.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 
 GRAM_BLOCK = 256
@@ -20,27 +22,43 @@ GRAM_BLOCK = 256
 only work done twice."""
 
 
-def _blocks(size: int) -> list[tuple[int, int]]:
+def gram_blocks(size: int) -> list[tuple[int, int]]:
+    """The row blocks ``(start, stop)`` of :data:`GRAM_BLOCK` rows in which the Gram products are
+    built and factored: :param size: the number of rows."""
     return [(start, min(start + GRAM_BLOCK, size)) for start in range(0, size, GRAM_BLOCK)]
 
 
-def lower_gram(matrix: torch.Tensor, dtype: torch.dtype | None = None) -> torch.Tensor:
-    """The lower triangle (by blocks of :data:`GRAM_BLOCK` rows) of ``matrix @ matrix.T``: about
-    half the FLOPs of the full product; the blocks above the diagonal are left unset (never read).
+def lower_gram(
+    matrix: torch.Tensor,
+    dtype: torch.dtype | None = None,
+    other: torch.Tensor | None = None,
+    add_to: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """The lower triangle (by blocks of :data:`GRAM_BLOCK` rows) of ``matrix @ matrix.T``, or with
+    ``other`` of the symmetric ``matrix @ other.T + other @ matrix.T``: about half the FLOPs of
+    the full product; the blocks above the diagonal are left unset (never read).
 
     :param matrix: (m, k), any strides (e.g. the transpose of a (k, m) matrix)
-    :param dtype: the result's dtype (None: matrix's); the products run in matrix's dtype and
-        each block is converted as it is written (no full-size copy)
+    :param dtype: the result's dtype (None: matrix's); the products run in matrix's dtype, each
+        block into one reused scratch block, converted as it is written (no full-size copy)
+    :param other: (m, k), or None for the Gram matrix of ``matrix`` alone
+    :param add_to: (m, m) a lower triangle the products are added to, in place (its dtype is the
+        result's); None: a new matrix
     :return: (m, m)
     """
     m = matrix.shape[0]
-    out = matrix.new_empty(m, m, dtype=dtype)
-    for start, stop in _blocks(m):
-        block = out[start:stop, :stop]
-        if out.dtype == matrix.dtype:
-            torch.mm(matrix[start:stop], matrix[:stop].T, out=block)
-        else:
-            block.copy_(matrix[start:stop] @ matrix[:stop].T)
+    out = matrix.new_empty(m, m, dtype=dtype) if add_to is None else add_to
+    in_place = out.dtype == matrix.dtype and add_to is None
+    scratch = None if in_place else matrix.new_empty(min(GRAM_BLOCK, m), m)  # reused by every block
+    for start, stop in gram_blocks(m):
+        block = out[start:stop, :stop] if in_place else scratch[: stop - start, :stop]
+        torch.mm(matrix[start:stop], (matrix if other is None else other)[:stop].T, out=block)
+        if other is not None:
+            block.addmm_(other[start:stop], matrix[:stop].T)
+        if add_to is not None:
+            out[start:stop, :stop].add_(block)
+        elif not in_place:
+            out[start:stop, :stop].copy_(block)
     return out
 
 
@@ -57,7 +75,7 @@ def cholesky_(system: torch.Tensor) -> torch.Tensor:
         after the factorisation: no synchronisation per block)
     """
     failed = torch.zeros((), dtype=torch.int32, device=system.device)
-    for start, stop in _blocks(system.shape[0]):
+    for start, stop in gram_blocks(system.shape[0]):
         column = system[start:, start:stop]
         if start:
             column.addmm_(system[start:, :start], system[start:stop, :start].T, alpha=-1)
@@ -76,7 +94,7 @@ def cholesky_solve(factor: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
     :param rhs: (m,) right-hand side, factor's dtype
     :return: (m,) x
     """
-    blocks = _blocks(factor.shape[0])
+    blocks = gram_blocks(factor.shape[0])
     y = rhs.clone()
     for start, stop in blocks:
         if start:
@@ -103,24 +121,37 @@ def ridge_solve(lhs: torch.Tensor, rhs: torch.Tensor, ridge: float) -> torch.Ten
     return torch.linalg.solve(system, rhs.double())
 
 
+def lower_solve_(system: torch.Tensor, rhs: torch.Tensor, ridge: float, rebuild: Callable[[], torch.Tensor]) -> torch.Tensor:
+    """Solve ``(S + ridge I) x = rhs`` for a symmetric S given by its float64 lower triangle, by
+    Cholesky in place (:func:`cholesky_`). Where rounding made the system not positive definite
+    (a tiny ridge on a singular Gram matrix), ``rebuild()`` gives S again and it is solved by LU,
+    symmetrised.
+
+    :param system: (m, m) float64, S in its lower triangle; overwritten
+    :param rhs: (m,) right-hand side
+    :param ridge: lambda, in the units of S
+    :param rebuild: builds S's lower triangle again (for the fallback)
+    :return: (m,) float64 solution
+    """
+    system.diagonal().add_(ridge)
+    if int(cholesky_(system)) == 0:
+        return cholesky_solve(system, rhs.double())
+    lower = rebuild().tril_()
+    lower.diagonal().add_(ridge)
+    return torch.linalg.solve(lower + lower.tril(-1).T, rhs.double())
+
+
 def gram_solve(matrix: torch.Tensor, rhs: torch.Tensor, ridge: float) -> torch.Tensor:
-    """Solve (matrix matrix^T + ridge I) x = rhs in float64 by Cholesky (:func:`cholesky_`), the
+    """Solve (matrix matrix^T + ridge I) x = rhs in float64 by Cholesky (:func:`lower_solve_`), the
     product built as its lower triangle (:func:`lower_gram`, products in matrix's dtype): half
-    the FLOPs and, for the solve, a third of LU's. Where rounding made the system not positive
-    definite (a tiny ridge on a singular Gram matrix), it is rebuilt and solved by LU, symmetrised.
+    the FLOPs and, for the solve, a third of LU's.
 
     :param matrix: (m, k) any float dtype and strides
     :param rhs: (m,) right-hand side
     :param ridge: lambda, in the units of the Gram matrix
     :return: (m,) float64 solution
     """
-    system = lower_gram(matrix, torch.float64)
-    system.diagonal().add_(ridge)
-    if int(cholesky_(system)) == 0:
-        return cholesky_solve(system, rhs.double())
-    lower = lower_gram(matrix, torch.float64).tril_()
-    lower.diagonal().add_(ridge)
-    return torch.linalg.solve(lower + lower.tril(-1).T, rhs.double())
+    return lower_solve_(lower_gram(matrix, torch.float64), rhs, ridge, lambda: lower_gram(matrix, torch.float64))
 
 
 def transposed_product(matrix: torch.Tensor, other: torch.Tensor, rows: int = 128) -> torch.Tensor:

@@ -14,9 +14,12 @@ an n x n system, which gives the same weights to rounding (the push-through iden
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
+
 import torch
 
-from cme_agent.linalg import gram_solve, ridge_solve, transposed_product
+from cme_agent.linalg import gram_solve, lower_gram, lower_solve_, ridge_solve, transposed_product
 
 SYSTEM_BYTES_PER_ENTRY = 20
 """Bytes per entry of the evaluation's m x m system, m = min(|C|, p), at most: LSTD's product in
@@ -70,6 +73,80 @@ def bellman_residual_weights(
     else:
         weights = transposed_product(residual_map, gram_solve(residual_map, rewards, ridge))
     return weights.to(phi.dtype)
+
+
+@dataclass
+class FactoredResidual:
+    """The residual map of eq. (7), ``A = Phi_C - gamma Phi'_C``, kept in its factors when the
+    model's successor features are ``Phi'_C = c Phi_C + Psi_C B^T`` (c = 1 with feature dynamics,
+    else 0): ``A = a Phi_C - Psi_C M^T`` with ``a = 1 - gamma c`` and ``M = gamma B``. With a
+    cheap Gram matrix of phi (an RBF grid's, from its one-dimensional factors) the dual system
+    costs O(n^2 q + n q^2 + n p q) instead of O(n^2 p): the form for a wide phi and |C| < p.
+
+    :param phi: (n, p) Phi_C
+    :param phi_gram: builds ``scale * Phi_C Phi_C^T`` from a scale, as a new (n, n) float64 lower
+        triangle (e.g. :meth:`~cme_agent.state_features.RBFGrid.gram` at the states of C)
+    :param psi: (n, q) Psi_C = psi(s_i, pi(s_i)) (or E_pi[psi(s_i, A)])
+    :param transition: (p, q) B, the rows of the model that predict phi
+    :param gamma: discount factor
+    :param keeps_phi: c = 1, the model predicts the change phi~(s') - phi(s)
+    """
+
+    phi: torch.Tensor
+    phi_gram: Callable[[float], torch.Tensor]
+    psi: torch.Tensor
+    transition: torch.Tensor
+    gamma: float
+    keeps_phi: bool
+
+    @property
+    def scale(self) -> float:
+        """a = 1 - gamma c, the coefficient of Phi_C in A."""
+        return 1 - self.gamma if self.keeps_phi else 1.0
+
+    def matvec(self, w: torch.Tensor) -> torch.Tensor:
+        """A w: (p,) -> (n,), matrix-vector products only."""
+        return (self.phi @ w).mul_(self.scale).sub_(self.psi @ (self.transition.T @ w), alpha=self.gamma)
+
+    def rmatvec(self, alpha: torch.Tensor) -> torch.Tensor:
+        """A^T alpha in float64: (n,) -> (p,)."""
+        psi_part = transposed_product(self.transition.T, transposed_product(self.psi, alpha))
+        return transposed_product(self.phi, alpha).mul_(self.scale).sub_(psi_part, alpha=self.gamma)
+
+    def lower_gram(self) -> torch.Tensor:
+        """The lower triangle of A A^T in float64, ``a^2 Phi Phi^T + H Psi^T + Psi H^T`` with
+        ``H = Psi (M^T M) / 2 - a Phi M`` (n, q); the products run in phi's dtype."""
+        transition = self.transition * self.gamma
+        half = torch.addmm(self.phi @ transition, self.psi, transition.T @ transition, beta=-self.scale, alpha=0.5)
+        return lower_gram(half, other=self.psi, add_to=self.phi_gram(self.scale**2))
+
+
+def factored_dual_weights(residual: FactoredResidual, rewards: torch.Tensor, l2: float) -> torch.Tensor:
+    """Eq. (7) in its dual form ``w = A^T (A A^T + lambda I)^{-1} r`` on a
+    :class:`FactoredResidual` (A is never formed): the weights of
+    :func:`bellman_residual_weights` to rounding.
+
+    :param residual: A in its factors
+    :param rewards: (n,) expected rewards r(s_i, pi(s_i))
+    :param l2: ridge, relative to the mean diagonal of the normal equations
+    :return: (p,) value weights w, in phi's dtype
+    """
+    system = residual.lower_gram()
+    ridge = _ridge(system.diagonal().sum(), residual.phi.shape[1], l2)  # trace(A A^T) = ||A||_F^2
+    alpha = lower_solve_(system, rewards, ridge, residual.lower_gram)
+    return residual.rmatvec(alpha).to(residual.phi.dtype)
+
+
+def factored_is_cheaper(n: int, p: int, q: int) -> bool:
+    """Whether the :class:`FactoredResidual` dual system (2 n^2 q + 2 n q^2 flops beyond the
+    n p q products both forms need) costs less than the dense one (n^2 p for A A^T's lower
+    triangle): only in the dual case n < p.
+
+    :param n: |C|
+    :param p: width of phi
+    :param q: width of psi
+    """
+    return n < p and 2 * q * (n + q) < n * p
 
 
 def lstd_weights(phi: torch.Tensor, next_phi: torch.Tensor, rewards: torch.Tensor, gamma: float, l2: float) -> torch.Tensor:

@@ -28,6 +28,7 @@ from torch import nn
 
 from cme_agent.config import EvaluationConfig, StateFeatureConfig, collection_size_for
 from cme_agent.encoding import ObservationEncoder
+from cme_agent.linalg import GRAM_BLOCK, gram_blocks
 from cme_agent.planning import evaluation_memory_bytes
 
 DEFAULT_GRID_RESOLUTION = 11
@@ -44,7 +45,27 @@ MAX_MEMORY_FRACTION = 0.5
 """A phi whose evaluation needs more than this fraction of physical memory is refused."""
 
 
-class RBFGrid(nn.Module):
+class StateFeatureMap(nn.Module):
+    """Base of the phi maps: ``forward`` (N, obs_dim) -> (N, p), the ``width`` p, and the
+    regression targets of the model built from phi."""
+
+    width: int
+
+    def successor_targets(
+        self, next_obs: torch.Tensor, continuation: torch.Tensor, obs: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """The model's regression targets ``continuation * phi(s') (- phi(s))``.
+
+        :param next_obs: (N, obs_dim) successors s'
+        :param continuation: (N,) 1 - terminated
+        :param obs: (N, obs_dim) states s, or None for the targets phi~(s') alone
+        :return: (N, p)
+        """
+        target = self(next_obs).mul_(continuation[:, None])
+        return target if obs is None else target.sub_(self(obs))
+
+
+class RBFGrid(StateFeatureMap):
     """Gaussian radial basis functions on a regular grid over the grid coordinates of the encoder.
 
     phi(s) is the tensor product of one-dimensional Gaussian bumps, one factor per grid
@@ -78,25 +99,85 @@ class RBFGrid(nn.Module):
         """p: grid points plus the constant."""
         return math.prod(self.resolution) + 1
 
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        """:param obs: (N, obs_dim) observations. :return: (N, p) features."""
-        coords, n = self.encoder.grid_coordinates(obs), obs.shape[0]
-        out = obs.new_empty(n, self.width)
-        out[:, -1] = 1
-        features = out.new_ones(n, 1)
+    def bumps(self, obs: torch.Tensor) -> list[torch.Tensor]:
+        """The one-dimensional factors of phi: one (N, resolution[d]) matrix of Gaussian bumps per
+        grid dimension d. :param obs: (N, obs_dim) observations."""
+        coords = self.encoder.grid_coordinates(obs)
+        factors = []
         for dim, periodic in enumerate(self.periodic):
             diff = coords[:, dim : dim + 1] - getattr(self, f"centres_{dim}")
             if periodic:
                 diff = torch.remainder(diff + 1, 2) - 1
-            bumps = torch.exp(-(diff**2) * getattr(self, f"inv_two_var_{dim}"))
-            if dim == len(self.periodic) - 1:  # the last product is written in place, beside the constant
-                torch.mul(features[:, :, None], bumps[:, None, :], out=out[:, :-1].unflatten(1, (-1, bumps.shape[1])))
-            else:
-                features = (features[:, :, None] * bumps[:, None, :]).reshape(n, -1)
+            factors.append(torch.exp(-(diff**2) * getattr(self, f"inv_two_var_{dim}")))
+        return factors
+
+    @staticmethod
+    def _grid_view(out: torch.Tensor, factors: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """The grid part of ``out`` (N, p) as (N, r_0, r_1 ... r_last), and the product of every
+        factor but the first, (N, r_1 ... r_last), built from the last factor backwards so that
+        each product's inner dimension is the long one (one vectorised pass per product)."""
+        tail = factors[-1] if len(factors) > 1 else factors[0].new_ones(factors[0].shape[0], 1)
+        for factor in reversed(factors[1:-1]):
+            tail = (factor[:, :, None] * tail[:, None, :]).flatten(1)
+        return out[:, :-1].unflatten(1, (factors[0].shape[1], -1)), tail[:, None, :]
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        """:param obs: (N, obs_dim) observations. :return: (N, p) features."""
+        factors = self.bumps(obs)
+        out = obs.new_empty(obs.shape[0], self.width)
+        out[:, -1] = 1
+        grid, tail = self._grid_view(out, factors)
+        torch.mul(factors[0][:, :, None], tail, out=grid)
+        return out
+
+    def gram(self, obs: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
+        """The lower triangle of ``Phi Phi^T`` (by blocks of rows, as
+        :func:`~cme_agent.linalg.lower_gram`) in float64, from the factors of the tensor product:
+        ``<phi(s), phi(t)> = 1 + prod_d <bumps_d(s), bumps_d(t)>``, O(N^2 sum_d r_d) instead of
+        O(N^2 p).
+
+        :param obs: (N, obs_dim) observations
+        :param scale: a factor applied to the result
+        :return: (N, N) float64, the blocks above the diagonal unset
+        """
+        factors = [factor.double() for factor in self.bumps(obs)]
+        n = obs.shape[0]
+        out = factors[0].new_empty(n, n)
+        scratch = factors[0].new_empty(min(GRAM_BLOCK, n), n)
+        for start, stop in gram_blocks(n):
+            block = torch.mm(factors[0][start:stop], factors[0][:stop].T, out=out[start:stop, :stop])
+            for factor in factors[1:]:
+                block.mul_(torch.mm(factor[start:stop], factor[:stop].T, out=scratch[: stop - start, :stop]))
+            block.add_(1).mul_(scale)
+        return out
+
+    def successor_targets(
+        self, next_obs: torch.Tensor, continuation: torch.Tensor, obs: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """``continuation * phi(s') (- phi(s))`` in one pass over the (N, p) output: the
+        continuation scales the first factor, and phi(s) is subtracted by a fused multiply-add
+        from its factors (no (N, p) temporaries).
+
+        :param next_obs: (N, obs_dim) successors s'
+        :param continuation: (N,) 1 - terminated
+        :param obs: (N, obs_dim) states s, or None for the targets phi~(s') alone
+        :return: (N, p)
+        """
+        factors = self.bumps(next_obs)
+        factors[0] = factors[0] * continuation[:, None]
+        out = next_obs.new_empty(next_obs.shape[0], self.width)
+        grid, tail = self._grid_view(out, factors)
+        torch.mul(factors[0][:, :, None], tail, out=grid)
+        out[:, -1] = continuation
+        if obs is not None:
+            factors = self.bumps(obs)
+            grid, tail = self._grid_view(out, factors)
+            grid.addcmul_(factors[0][:, :, None], tail, value=-1)
+            out[:, -1] -= 1
         return out
 
 
-class RandomFourierFeatures(nn.Module):
+class RandomFourierFeatures(StateFeatureMap):
     """Random Fourier features of a Gaussian kernel on the normalised observation.
 
     phi(s) = (sqrt(2 / D) cos(W z + b), 1) with z the normalised observation, W ~ N(0, 1/bw^2),
@@ -127,7 +208,7 @@ class RandomFourierFeatures(nn.Module):
         return torch.cat([features, torch.ones_like(features[:, :1])], dim=1)
 
 
-class CustomStateFeatures(nn.Module):
+class CustomStateFeatures(StateFeatureMap):
     """Wraps a user-supplied map obs (N, obs_dim) -> (N, p0) and appends the constant feature.
 
     :param feature_map: an ``nn.Module`` (its parameters are saved with the policy) or a
@@ -225,7 +306,7 @@ def make_state_features(
     encoder: ObservationEncoder,
     evaluation: EvaluationConfig | None = None,
     device: torch.device | str | None = None,
-) -> nn.Module:
+) -> StateFeatureMap:
     """Build phi from its config, or wrap a user-supplied map, and check its memory.
 
     ``kind="auto"``: an RBF grid when ``resolution`` is given or :func:`default_resolution`

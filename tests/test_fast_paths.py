@@ -2,7 +2,9 @@
 step (blocked, factorised, into reused buffers), acting, and the policy evaluation built on them."""
 
 import dataclasses
+import functools
 
+import gymnasium
 import numpy as np
 import pytest
 import torch
@@ -10,8 +12,11 @@ from stable_baselines3.common.policies import BasePolicy
 
 from cme_agent import CMEPolicyIteration
 from cme_agent import policy as policy_module
+from cme_agent.config import ObservationConfig
+from cme_agent.encoding import ObservationEncoder
 from cme_agent.kernel_bank import CUTOFF_EXPONENT, gaussian_kernel
-from cme_agent.planning import bellman_residual_weights
+from cme_agent.planning import FactoredResidual, bellman_residual_weights, factored_dual_weights
+from cme_agent.state_features import RBFGrid, StateFeatureMap
 
 
 @pytest.fixture(scope="module")
@@ -27,6 +32,11 @@ def trained(request):
         model.learn(400)
         assert model.q > 0
         models[env_id] = model
+    # |C| = 300 < p = 626: the dual system, built from the factors of the residual map
+    wide = CMEPolicyIteration("CMEPolicy", "CartPole-v1", seed=0, **small_kwargs(policy_kwargs={"phi": {"resolution": [5]}}))
+    wide.learn(400)
+    assert wide._factored_evaluation(300)
+    models["CartPole-v1 factored"] = wide
     return models
 
 
@@ -66,8 +76,10 @@ def test_greedy_step_equals_the_paired_computation(trained, env_id, monkeypatch)
     assert torch.allclose(model_rewards, dynamics.linear_reward(step.phi, step.psi), atol=1e-4)
 
 
-@pytest.mark.parametrize("env_id", ["Pendulum-v1", "CartPole-v1"])
-def test_policy_evaluation_equals_the_reference_in_float64(trained, env_id):
+# the factored model's dual system (|C| = 300 < p = 626) is ill-conditioned: on its collections the
+# dense float32 path errs by 0.9e-3 to 8.5e-3 against the float64 reference, the factored one by 1.2e-3 to 2.0e-3
+@pytest.mark.parametrize("env_id, tolerance", [("Pendulum-v1", 1e-3), ("CartPole-v1", 1e-3), ("CartPole-v1 factored", 5e-3)])
+def test_policy_evaluation_equals_the_reference_in_float64(trained, env_id, tolerance):
     model = trained[env_id]
     dynamics, gamma, l2 = model.dynamics, model.gamma, model.evaluation_config.l2
     states = model.draw_collection()
@@ -80,7 +92,81 @@ def test_policy_evaluation_equals_the_reference_in_float64(trained, env_id):
     rewards = dynamics.reward.step_reward(states, actions).double() + phi @ c_phi.double() + psi @ c_psi.double()
     reference = bellman_residual_weights(phi, next_phi, rewards, gamma, l2)
     values, reference_values = phi @ weights.double(), phi @ reference
-    assert torch.linalg.vector_norm(values - reference_values) <= 1e-3 * torch.linalg.vector_norm(reference_values)
+    assert torch.linalg.vector_norm(values - reference_values) <= tolerance * torch.linalg.vector_norm(reference_values)
+
+
+def _grid(resolution, periodic_pairs=()):
+    space = gymnasium.spaces.Box(-2.0, 2.0, (2 * len(periodic_pairs) + len(resolution) - len(periodic_pairs),))
+    encoder = ObservationEncoder(space, ObservationConfig(angle_pairs=[list(pair) for pair in periodic_pairs]))
+    return RBFGrid(encoder, tuple(resolution), 0.7), space
+
+
+@pytest.mark.parametrize("resolution, pairs", [((5, 7, 9), ()), ((8, 4), ((0, 1),)), ((6,), ())])
+def test_rbf_grid_equals_its_definition_and_its_gram_the_product(resolution, pairs):
+    grid, space = _grid(resolution, pairs)
+    space.seed(0)
+    obs = torch.as_tensor(np.stack([space.sample() for _ in range(300)]))
+    if pairs:  # a (cos, sin) pair
+        angle = obs[:, 0] * np.pi
+        obs[:, 0], obs[:, 1] = torch.cos(angle), torch.sin(angle)
+    phi = grid(obs)
+    reference = torch.ones(len(obs), 1, dtype=torch.float64)  # the tensor product, first dimension slowest
+    for bumps in grid.bumps(obs):
+        reference = (reference[:, :, None] * bumps.double()[:, None, :]).flatten(1)
+    assert torch.allclose(phi[:, :-1].double(), reference, rtol=1e-5, atol=1e-7) and (phi[:, -1] == 1).all()
+    blocks = torch.arange(len(obs)) // 256
+    on_or_below = blocks[:, None] >= blocks[None, :]
+    exact = (phi.double() @ phi.double().T) * 0.3
+    assert torch.allclose(grid.gram(obs, scale=0.3)[on_or_below], exact[on_or_below], rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("with_states", [True, False])
+def test_successor_targets_equal_phi_of_the_successors_less_phi(with_states):
+    grid, space = _grid((5, 7, 9))
+    space.seed(1)
+    obs, next_obs = (torch.as_tensor(np.stack([space.sample() for _ in range(200)])) for _ in range(2))
+    continuation = (torch.arange(200) % 7 != 0).float()
+    reference = grid(next_obs) * continuation[:, None] - (grid(obs) if with_states else 0)
+    fused = grid.successor_targets(next_obs, continuation, obs if with_states else None)
+    assert torch.allclose(fused, reference, atol=1e-6)
+    generic = StateFeatureMap.successor_targets(grid, next_obs, continuation, obs if with_states else None)
+    assert torch.allclose(generic, reference, atol=1e-6)
+
+
+@pytest.mark.parametrize("keeps_phi", [True, False])
+def test_factored_dual_weights_equal_the_dense_solve(keeps_phi):
+    """A = a Phi - Psi M^T in its factors gives the dense dual solve's w: equal in float64, and in
+    float32 within the float32 tolerance of the dense path against the float64 reference."""
+    grid, space = _grid((5, 7, 9))
+    space.seed(2)
+    states = torch.as_tensor(np.stack([space.sample() for _ in range(250)]))
+    generator = torch.Generator().manual_seed(3)
+    psi = torch.rand(250, 40, generator=generator) * torch.rand(250, 1, generator=generator)
+    transition = torch.randn(grid.width, 40, generator=generator) * 0.05
+    rewards = torch.randn(250, generator=generator)
+    phi, gamma, l2 = grid(states), 0.95, 1e-4
+    next_phi = psi.double() @ transition.double().T + (phi.double() if keeps_phi else 0)
+    reference = bellman_residual_weights(phi.double(), next_phi, rewards.double(), gamma, l2)
+    phi64 = phi.double()
+    exact = factored_dual_weights(
+        FactoredResidual(phi64, lambda scale: (phi64 @ phi64.T) * scale, psi.double(), transition.double(), gamma, keeps_phi),
+        rewards.double(),
+        l2,
+    )
+    assert torch.allclose(exact, reference, rtol=1e-6, atol=1e-8 * float(reference.abs().max()))
+    gram = functools.partial(grid.gram, states)  # from the grid's factors
+    fast = factored_dual_weights(FactoredResidual(phi, gram, psi, transition, gamma, keeps_phi), rewards, l2)
+    dense = bellman_residual_weights(phi, next_phi.float(), rewards, gamma, l2)  # the dense float32 path
+
+    def value_error(weights: torch.Tensor) -> float:
+        values, reference_values = phi.double() @ weights.double(), phi.double() @ reference
+        return float(torch.linalg.vector_norm(values - reference_values) / torch.linalg.vector_norm(reference_values))
+
+    # an ill-conditioned problem: float32 products err by 0.3-1.8% on the dense path, 0.07-0.5% here
+    assert fast.dtype == torch.float32 and value_error(fast) <= min(value_error(dense), 1e-2)
+    residual = FactoredResidual(phi, gram, psi, transition, gamma, keeps_phi)
+    dense_residual = phi.double() - gamma * next_phi
+    assert torch.allclose(residual.matvec(fast).double(), dense_residual @ fast.double(), rtol=1e-4, atol=1e-4)
 
 
 def test_short_predict_equals_sb3s(trained):

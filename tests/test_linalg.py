@@ -20,6 +20,20 @@ def test_lower_gram_is_the_lower_triangle_of_the_product(rows):
     assert wide.dtype == torch.float64 and torch.allclose(wide[on_or_below], full[on_or_below].double(), atol=1e-4)
 
 
+@pytest.mark.parametrize("rows", [1, 300, 700])
+def test_lower_gram_of_a_pair_is_the_symmetric_product_added_in_place(rows):
+    generator = torch.Generator().manual_seed(rows)
+    matrix, other = torch.randn(rows, 11, generator=generator), torch.randn(rows, 11, generator=generator)
+    base = torch.randn(rows, rows, generator=generator, dtype=torch.float64)
+    expected = base + (matrix @ other.T + other @ matrix.T).double()
+    blocks = torch.arange(rows) // GRAM_BLOCK
+    on_or_below = blocks[:, None] >= blocks[None, :]
+    result = lower_gram(matrix, other=other, add_to=base.clone())
+    assert result.dtype == torch.float64 and torch.allclose(result[on_or_below], expected[on_or_below], atol=1e-4)
+    alone = lower_gram(matrix, torch.float64, other=other)
+    assert torch.allclose(alone[on_or_below], (expected - base)[on_or_below], atol=1e-4)
+
+
 def _spd(size: int, seed: int) -> torch.Tensor:
     matrix = torch.randn(size, size + 3, dtype=torch.float64, generator=torch.Generator().manual_seed(seed))
     return matrix @ matrix.T + 0.1 * torch.eye(size, dtype=torch.float64)

@@ -121,9 +121,8 @@ class CMEDynamics(nn.Module):
 
     def targets(self, batch: Transitions) -> torch.Tensor:
         """Regression targets y of a batch: (N, p_out), phi~(s') (- phi(s)) (and r / reward_scale)."""
-        target = self.phi(batch.next_obs).mul_((~batch.terminated).unsqueeze(1).to(batch.next_obs))
-        if self.feature_dynamics:
-            target.sub_(self.phi(batch.obs))
+        continuation = (~batch.terminated).to(batch.next_obs)
+        target = self.phi.successor_targets(batch.next_obs, continuation, batch.obs if self.feature_dynamics else None)
         if self.learn_reward:
             target = torch.cat([target, (batch.rewards / self.reward_scale).unsqueeze(1)], dim=1)
         return target
