@@ -9,7 +9,8 @@ float64 (:mod:`cme_agent.linalg`: a blocked Cholesky in place for the symmetric
 Bellman-residual systems, whose products are built as their lower triangle; LU for LSTD's).
 Ridges are added in place. When n < p the exact solvers switch to the dual form,
 an n x n system, which gives the same weights to rounding (the push-through identity
-``(X^T A + lambda I)^{-1} X^T = X^T (A X^T + lambda I)^{-1}``).
+``(X^T A + lambda I)^{-1} X^T = X^T (A X^T + lambda I)^{-1}``). With a cheap Gram matrix of phi
+the dual system is built from the factors of A instead (:class:`FactoredResidual`).
 """
 
 from __future__ import annotations

@@ -2,8 +2,10 @@
 
 With the candidate atoms G (n x c) evaluated on the subsample and the residual R (n x p),
 atom j removes ``score_j = ||G_j^T R||^2 / ||G_j||^2`` of the residual energy when given its
-least-squares weights ``b = G_j^T R / ||G_j||^2``. ``C = G^T R`` is computed once; after a
-pick, ``C <- C - (G^T G_j) b^T`` costs O(c (n + p)) (docs/design.md).
+least-squares weights ``b = G_j^T R / ||G_j||^2``. ``C0 = G^T R`` is computed once; after t
+picks the correlations are ``C_t = C0 - sum_s g_s b_s^T`` with ``g_s = G^T G_{j_s}``, which is
+never formed: the scores' squared row norms are updated per pick from ``C0 b`` and the earlier
+picks, O(c (n + p) + t (c + p)) reading C0 once, where updating C in place reads and writes it.
 """
 
 from __future__ import annotations
@@ -54,27 +56,36 @@ def matching_pursuit(
     # would overflow the weights' dtype (sqrt of its smallest normal number, ~1e-19 for float32)
     floor = (norms.max() * 1e-12).clamp_min(torch.finfo(dtype).tiny ** 0.5)
     inverse_norms = torch.where(norms > floor, 1 / norms.clamp_min(1e-300), 0.0)
-    C = transposed_product(G, residual)  # float64, no float64 copy of the (n, p) residual
+    C0 = transposed_product(G, residual)  # float64, no float64 copy of the (n, p) residual
     energy_before = torch.linalg.vector_norm(residual, dtype=torch.float64).square()
     energy = energy_before.clone()
-    weights = torch.zeros_like(C)  # (c, p): summed weights of each atom (an atom may be picked again)
-    picked = torch.zeros(C.shape[0], dtype=torch.bool, device=C.device)
-    active = torch.ones((), dtype=torch.bool, device=C.device)
-    for _ in range(max_atoms):  # no host synchronisation on a GPU, no (c, p) temporary per pick
-        score, j = torch.max(torch.linalg.vector_norm(C, dim=1).square_().mul_(inverse_norms), dim=0)
+    # C_t = C0 - sum_{s<t} g_s b_s^T is never formed: its squared row norms are updated per pick and
+    # its row j is rebuilt from the picks so far (one read of C0 per pick instead of a rank-1 update)
+    squared_norms = C0.square().sum(1)  # (c,) ||C_t[i]||^2
+    picks = torch.zeros(max_atoms, dtype=torch.long, device=C0.device)
+    steps = C0.new_zeros(max_atoms, C0.shape[1])  # (max_atoms, p): b_t
+    couplings = C0.new_zeros(C0.shape[0], max_atoms)  # (c, max_atoms): g_t = G^T G_{j_t}
+    taken = torch.zeros(max_atoms, dtype=torch.bool, device=C0.device)
+    active = torch.ones((), dtype=torch.bool, device=C0.device)
+    count = 0
+    for t in range(max_atoms):  # no host synchronisation on a GPU, no (c, p) temporary per pick
+        score, j = torch.max(squared_norms * inverse_norms, dim=0)
         active &= (score > 0) & (score >= threshold * energy)
-        if _stops_early(C.device) and not active:
+        if _stops_early(C0.device) and not active:
             break
-        j = j.view(1)
-        b = C.index_select(0, j).mul_(inverse_norms[j] * active)  # (1, p), zero once stopped
-        C.addmm_(G.T @ G.index_select(1, j), b, alpha=-1)
-        weights.index_add_(0, j, b)
-        picked.index_put_((j,), active.view(1) | picked.index_select(0, j))
+        row = C0[j] - couplings[j, :t] @ steps[:t]  # C_t[j]
+        b = row.mul_(inverse_norms[j] * active)  # (p,), zero once stopped
+        g = G.T @ G[:, j]  # (c,)
+        correlations = (C0 @ b).sub_(couplings[:, :t] @ (steps[:t] @ b))  # <C_t[i], b>
+        squared_norms.addcmul_(g, correlations, value=-2).addcmul_(g.square(), b.square().sum()).clamp_min_(0)
+        picks[t], steps[t], couplings[:, t], taken[t] = j, b, g, active
         energy = torch.where(active, (energy - score).clamp_min(0), energy)
-    indices = picked.nonzero().squeeze(1)
+        count = t + 1
+    chosen = taken[:count]
+    indices, slots = torch.unique(picks[:count][chosen], return_inverse=True)  # an atom may be picked again
     if len(indices) == 0:
         return PursuitResult(indices, residual.new_zeros(0, residual.shape[1]), float(energy_before), float(energy_before))
-    weights = weights[indices]
+    weights = C0.new_zeros(len(indices), C0.shape[1]).index_add_(0, slots, steps[:count][chosen])
     if orthogonal:
         R = residual.double()
         weights = _least_squares_refit(G[:, indices], R)
