@@ -73,12 +73,13 @@ def matching_pursuit(
         active &= (score > 0) & (score >= threshold * energy)
         if _stops_early(C0.device) and not active:
             break
-        row = C0[j] - couplings[j, :t] @ steps[:t]  # C_t[j]
-        b = row.mul_(inverse_norms[j] * active)  # (p,), zero once stopped
-        g = G.T @ G[:, j]  # (c,)
+        j = j.view(1)  # index_select, not indexing by a 0-dim tensor (which reads it on the host)
+        row = C0.index_select(0, j)[0].sub_(couplings.index_select(0, j)[0, :t] @ steps[:t])  # C_t[j]
+        b = row.mul_(inverse_norms.index_select(0, j) * active)  # (p,), zero once stopped
+        g = G.T @ G.index_select(1, j)[:, 0]  # (c,)
         correlations = (C0 @ b).sub_(couplings[:, :t] @ (steps[:t] @ b))  # <C_t[i], b>
         squared_norms.addcmul_(g, correlations, value=-2).addcmul_(g.square(), b.square().sum()).clamp_min_(0)
-        picks[t], steps[t], couplings[:, t], taken[t] = j, b, g, active
+        picks[t], steps[t], couplings[:, t], taken[t] = j[0], b, g, active
         energy = torch.where(active, (energy - score).clamp_min(0), energy)
         count = t + 1
     chosen = taken[:count]
