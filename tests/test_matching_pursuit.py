@@ -91,7 +91,7 @@ def test_running_every_pick_after_the_stop_changes_nothing(orthogonal, monkeypat
     early = matching_pursuit(atoms, residual, threshold=0.02, max_atoms=60, orthogonal=orthogonal)
     assert 0 < len(early.indices) < 60  # the rule stops it before the cap
     module = sys.modules["cme_agent.dynamics.matching_pursuit"]  # the package exports a function of that name
-    monkeypatch.setattr(module, "_stops_early", lambda device: False)
+    monkeypatch.setattr(module, "host_reads_are_free", lambda device: False)
     every = matching_pursuit(atoms, residual, threshold=0.02, max_atoms=60, orthogonal=orthogonal)
     assert torch.equal(every.indices, early.indices)
     assert torch.equal(every.weights, early.weights)

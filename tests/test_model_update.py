@@ -41,7 +41,9 @@ def test_sgd_lowers_the_loss_for_fixed_psi(learning_rate):
     assert final < 0.5 * initial
 
 
-def test_sgd_step_is_equation_6():
+@pytest.mark.parametrize("reads_are_free", [True, False])  # the CPU's path, and the GPU's (no host read of eta)
+def test_sgd_step_is_equation_6(reads_are_free, monkeypatch):
+    monkeypatch.setattr("cme_agent.dynamics.sgd.host_reads_are_free", lambda device: reads_are_free)
     psi = torch.tensor([[1.0, 2.0]])
     targets = torch.tensor([[3.0]])
     weights = torch.tensor([[0.5, -1.0]])

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
+from cme_agent.devices import host_reads_are_free
 from cme_agent.linalg import transposed_product
 
 
@@ -71,7 +72,7 @@ def matching_pursuit(
     for t in range(max_atoms):  # no host synchronisation on a GPU, no (c, p) temporary per pick
         score, j = torch.max(squared_norms * inverse_norms, dim=0)
         active &= (score > 0) & (score >= threshold * energy)
-        if _stops_early(C0.device) and not active:
+        if host_reads_are_free(C0.device) and not active:  # a GPU runs all max_atoms picks, zero after the stop
             break
         j = j.view(1)  # index_select, not indexing by a 0-dim tensor (which reads it on the host)
         row = C0.index_select(0, j)[0].sub_(couplings.index_select(0, j)[0, :t] @ steps[:t])  # C_t[j]
@@ -92,12 +93,6 @@ def matching_pursuit(
         weights = _least_squares_refit(G[:, indices], R)
         energy = ((R - G[:, indices] @ weights) ** 2).sum()
     return PursuitResult(indices, weights.to(dtype), float(energy_before), float(torch.minimum(energy, energy_before)))
-
-
-def _stops_early(device: torch.device) -> bool:
-    """Whether the picks may stop as soon as the stopping rule holds: reading the flag is free on
-    the CPU, a host synchronisation on a GPU (which runs all ``max_atoms`` picks, zero after the stop)."""
-    return device.type == "cpu"
 
 
 def _least_squares_refit(selected: torch.Tensor, residual: torch.Tensor) -> torch.Tensor:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import torch
 
+from cme_agent.devices import host_reads_are_free
+
 
 def sgd_step(weights: torch.Tensor, psi: torch.Tensor, targets: torch.Tensor, learning_rate: float, l2: float) -> None:
     """One minibatch step of eq. (6), in place:
@@ -23,4 +25,7 @@ def sgd_step(weights: torch.Tensor, psi: torch.Tensor, targets: torch.Tensor, le
     mean_sq_norm = torch.linalg.vector_norm(psi).square() / psi.shape[0]
     eta = learning_rate / mean_sq_norm.clamp_min(1e-12)  # a 0-dim tensor: no host synchronisation
     error = targets.addmm_(psi, weights.T, alpha=-1).mul_(eta / psi.shape[0])
-    weights.mul_(1 - eta * l2).addmm_(error.T, psi)
+    if host_reads_are_free(weights.device):  # the decay rides on the product: one pass over B
+        weights.addmm_(error.T, psi, beta=1 - float(eta) * l2)
+    else:  # no host synchronisation: the decay is a pass of its own
+        weights.mul_(1 - eta * l2).addmm_(error.T, psi)
