@@ -139,15 +139,16 @@ def factored_dual_weights(residual: FactoredResidual, rewards: torch.Tensor, l2:
 
 
 def factored_is_cheaper(n: int, p: int, q: int) -> bool:
-    """Whether the :class:`FactoredResidual` dual system (2 n^2 q + 2 n q^2 flops beyond the
-    n p q products both forms need) costs less than the dense one (n^2 p for A A^T's lower
-    triangle): only in the dual case n < p.
+    """Whether the :class:`FactoredResidual` dual system costs fewer flops than the dense one,
+    beyond the n p q product both forms need: ``2 n^2 q`` (the lower triangle of H Psi^T +
+    Psi H^T) + ``2 n q^2`` (H) + ``2 p q^2`` (M^T M) against ``n^2 p`` (A A^T's lower triangle).
+    Only in the dual case n < p.
 
     :param n: |C|
     :param p: width of phi
     :param q: width of psi
     """
-    return n < p and 2 * q * (n + q) < n * p
+    return n < p and 2 * q * (n * n + n * q + p * q) < n * n * p
 
 
 def lstd_weights(phi: torch.Tensor, next_phi: torch.Tensor, rewards: torch.Tensor, gamma: float, l2: float) -> torch.Tensor:

@@ -15,7 +15,7 @@ from cme_agent import policy as policy_module
 from cme_agent.config import ObservationConfig
 from cme_agent.encoding import ObservationEncoder
 from cme_agent.kernel_bank import CUTOFF_EXPONENT, gaussian_kernel
-from cme_agent.planning import FactoredResidual, bellman_residual_weights, factored_dual_weights
+from cme_agent.planning import FactoredResidual, bellman_residual_weights, factored_dual_weights, factored_is_cheaper
 from cme_agent.state_features import RBFGrid, StateFeatureMap
 
 
@@ -167,6 +167,12 @@ def test_factored_dual_weights_equal_the_dense_solve(keeps_phi):
     residual = FactoredResidual(phi, gram, psi, transition, gamma, keeps_phi)
     dense_residual = phi.double() - gamma * next_phi
     assert torch.allclose(residual.matvec(fast).double(), dense_residual @ fast.double(), rtol=1e-4, atol=1e-4)
+
+
+def test_the_factored_form_is_taken_where_it_costs_fewer_flops():
+    assert factored_is_cheaper(2000, 2836, 339)  # CartPole's preset at 2,000 steps
+    assert not factored_is_cheaper(2000, 2836, 900)  # 2 q (n^2 + n q + p q) = 12.6 G > n^2 p = 11.3 G
+    assert not factored_is_cheaper(8000, 316, 10)  # the primal case: no dual system at all
 
 
 def test_short_predict_equals_sb3s(trained):
