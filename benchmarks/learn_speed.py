@@ -9,7 +9,7 @@ in thread CPU seconds, the two versions alternating):
 - ``predict``: ``model.predict(obs, deterministic=True)`` on one observation, averaged over
   2,000 calls on the trained quickstart model;
 - ``cartpole``: CartPole-v1 at its preset (gamma 0.99, phi 5 x 7 x 9 x 9, today's bounds),
-  training seconds per env step over ``learn(2000)``;
+  training seconds per env step over ``learn(2000)`` (seed 0, or each of ``--cartpole-seeds``);
 - ``agreement``: the quickstart's first 400 steps (random actions, 2 iterations: the same data in
   both versions), then q and the norms of B and of the Q weights.
 
@@ -17,6 +17,7 @@ The baseline is the commit given by ``--baseline``, checked out into a scratch g
 imported in place of this checkout (same interpreter and packages: only cme_agent differs).
 
     python benchmarks/learn_speed.py [--baseline 6add98b] [--repeats 1] [--stem learn_speed] [--workloads cartpole]
+        [--cartpole-seeds 0 1 2]
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ from stable_baselines3.common.monitor import Monitor
 from cme_agent import CMEPolicyIteration
 
 torch.set_num_threads(1)
-name = sys.argv[1]
+name, seed = sys.argv[1], int(sys.argv[2])
 if name == "agreement":
     model = CMEPolicyIteration(
         "CMEPolicy", "Pendulum-v1", seed=0, omega=0.2,
@@ -55,7 +56,7 @@ if name == "agreement":
     sys.exit()
 if name == "cartpole":
     model = CMEPolicyIteration(
-        "CMEPolicy", "CartPole-v1", seed=0, gamma=0.99,
+        "CMEPolicy", "CartPole-v1", seed=seed, gamma=0.99,
         policy_kwargs={"phi": {"resolution": [5, 7, 9, 9]},
                        "observation": {"low": [-2.4, -3.0, -0.21, -3.5], "high": [2.4, 3.0, 0.21, 3.5]}},
     )
@@ -97,11 +98,16 @@ def checkout(commit: str) -> Path:
     return path
 
 
-def run(source: Path, workload: str) -> dict[str, float]:
-    """Run a workload with ``source``'s cme_agent first on the path; its printed JSON."""
+def run(source: Path, workload: str, seed: int = 0) -> dict[str, float]:
+    """Run a workload with ``source``'s cme_agent first on the path; its printed JSON (the
+    cartpole workload trains with ``seed``; the others always with seed 0)."""
     env = {"PYTHONPATH": str(source), "OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"}
     result = subprocess.run(
-        [sys.executable, "-c", WORKLOAD, workload], env=env, capture_output=True, text=True, cwd=tempfile.gettempdir()
+        [sys.executable, "-c", WORKLOAD, workload, str(seed)],
+        env=env,
+        capture_output=True,
+        text=True,
+        cwd=tempfile.gettempdir(),
     )
     if result.returncode != 0:
         raise RuntimeError(f"{workload} at {source} failed:\n{result.stderr[-3000:]}")
@@ -114,15 +120,23 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=1, help="alternated runs of each workload per version")
     parser.add_argument("--stem", default="learn_speed", help="name of the results/<stem>.md file")
     parser.add_argument("--workloads", nargs="+", default=list(WORKLOADS), choices=WORKLOADS, help="which workloads to run")
+    parser.add_argument(
+        "--cartpole-seeds",
+        nargs="+",
+        type=int,
+        default=[0],
+        help="seeds of the cartpole workload (its cost follows the q a seed reaches: several seeds compare like with like)",
+    )
     args = parser.parse_args()
     versions = {"baseline": checkout(args.baseline), "current": ROOT}
     workloads = [w for w in WORKLOADS if w in args.workloads]
     results: dict[str, dict[str, list[dict[str, float]]]] = {w: {v: [] for v in versions} for w in workloads}
     for _ in range(args.repeats):
         for workload in results:
-            for version, source in versions.items():
-                results[workload][version].append(run(source, workload))
-                print(workload, version, results[workload][version][-1], flush=True)
+            for seed in args.cartpole_seeds if workload == "cartpole" else [0]:
+                for version, source in versions.items():
+                    results[workload][version].append(run(source, workload, seed) | {"seed": seed})
+                    print(workload, version, results[workload][version][-1], flush=True)
 
     def median(workload: str, version: str, key: str) -> float:
         return statistics.median(r[key] for r in results[workload][version])
@@ -143,6 +157,13 @@ def main() -> None:
         f"commit {args.baseline} in a scratch worktree, same interpreter and packages).\n\n"
         f"{markdown_table(['workload', args.baseline, 'this commit', 'speed-up'], rows)}\n"
     )
+    if "cartpole" in results:
+        pairs = "; ".join(
+            f"seed {before['seed']}: {before['seconds_per_step'] * 1e3:.1f} ms at q = {before['q']} vs "
+            f"{after['seconds_per_step'] * 1e3:.1f} ms at q = {after['q']}"
+            for before, after in zip(results["cartpole"]["baseline"], results["cartpole"]["current"], strict=True)
+        )
+        text += f"\nCartPole runs ({args.baseline} vs this commit; the cost grows with the q a run reaches): {pairs}.\n"
     if "quickstart" in results:
         returns = {
             version: ", ".join(f"{r['return_mean']:.2f} +- {r['return_std']:.2f}" for r in results["quickstart"][version])
