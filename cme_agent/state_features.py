@@ -112,22 +112,25 @@ class RBFGrid(StateFeatureMap):
         return factors
 
     @staticmethod
-    def _grid_view(out: torch.Tensor, factors: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        """The grid part of ``out`` (N, p) as (N, r_0, r_1 ... r_last), and the product of every
-        factor but the first, (N, r_1 ... r_last), built from the last factor backwards so that
-        each product's inner dimension is the long one (one vectorised pass per product)."""
+    def _write_grid(out: torch.Tensor, factors: list[torch.Tensor], subtract: bool = False) -> None:
+        """Write (or, with ``subtract``, subtract) the tensor product of ``factors`` into the grid
+        part of ``out`` (N, p), in place. The product of every factor but the first is built from
+        the last factor backwards, so that each product's inner dimension is the long one (one
+        vectorised pass per product); the first factor is applied as the product is written."""
         tail = factors[-1] if len(factors) > 1 else factors[0].new_ones(factors[0].shape[0], 1)
         for factor in reversed(factors[1:-1]):
             tail = (factor[:, :, None] * tail[:, None, :]).flatten(1)
-        return out[:, :-1].unflatten(1, (factors[0].shape[1], -1)), tail[:, None, :]
+        grid = out[:, :-1].unflatten(1, (factors[0].shape[1], -1))
+        if subtract:
+            grid.addcmul_(factors[0][:, :, None], tail[:, None, :], value=-1)
+        else:
+            torch.mul(factors[0][:, :, None], tail[:, None, :], out=grid)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         """:param obs: (N, obs_dim) observations. :return: (N, p) features."""
-        factors = self.bumps(obs)
         out = obs.new_empty(obs.shape[0], self.width)
         out[:, -1] = 1
-        grid, tail = self._grid_view(out, factors)
-        torch.mul(factors[0][:, :, None], tail, out=grid)
+        self._write_grid(out, self.bumps(obs))
         return out
 
     def gram(self, obs: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
@@ -166,13 +169,10 @@ class RBFGrid(StateFeatureMap):
         factors = self.bumps(next_obs)
         factors[0] = factors[0] * continuation[:, None]
         out = next_obs.new_empty(next_obs.shape[0], self.width)
-        grid, tail = self._grid_view(out, factors)
-        torch.mul(factors[0][:, :, None], tail, out=grid)
+        self._write_grid(out, factors)
         out[:, -1] = continuation
         if obs is not None:
-            factors = self.bumps(obs)
-            grid, tail = self._grid_view(out, factors)
-            grid.addcmul_(factors[0][:, :, None], tail, value=-1)
+            self._write_grid(out, self.bumps(obs), subtract=True)
             out[:, -1] -= 1
         return out
 

@@ -62,7 +62,7 @@ def matching_pursuit(
     energy = energy_before.clone()
     # C_t = C0 - sum_{s<t} g_s b_s^T is never formed: its squared row norms are updated per pick and
     # its row j is rebuilt from the picks so far (one read of C0 per pick instead of a rank-1 update)
-    squared_norms = C0.square().sum(1)  # (c,) ||C_t[i]||^2
+    squared_norms = torch.linalg.vector_norm(C0, dim=1).square_()  # (c,) ||C_t[i]||^2, no (c, p) temporary
     picks = torch.zeros(max_atoms, dtype=torch.long, device=C0.device)
     steps = C0.new_zeros(max_atoms, C0.shape[1])  # (max_atoms, p): b_t
     couplings = C0.new_zeros(C0.shape[0], max_atoms)  # (c, max_atoms): g_t = G^T G_{j_t}
