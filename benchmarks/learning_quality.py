@@ -16,6 +16,8 @@ from the records.
 
     python benchmarks/learning_quality.py --envs pendulum cartpole --seeds 0 1 2 [--workers 2]
     python benchmarks/learning_quality.py --stem learning_quality_soft --overrides agent.improvement.method=soft
+    python benchmarks/learning_quality.py --envs --env-id InvertedPendulum-v5 --steps 5000 --target 950 \
+        --kwargs '{"improvement": {"deploy": "best_return"}}' --stem lq_inverted_pendulum
 """
 
 from __future__ import annotations
@@ -27,6 +29,8 @@ import os
 import statistics
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -34,7 +38,10 @@ import torch
 from common import RESULTS, command_line, compose_config, markdown_table, plot_learning_curves, write_report
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.logger import Logger, configure
+from stable_baselines3.common.monitor import Monitor
+from unseen_envs import EVAL_SEED_OFFSET  # importing it registers PointGoal2D-v0
 
+from cme_agent import CMEPolicyIteration
 from cme_agent.experiment import build_agent, make_env, make_eval_env
 
 TARGETS = {  # env config: target return; the step budget is the env config's total_timesteps
@@ -132,24 +139,69 @@ def evaluation_loop(
     return rows
 
 
-def run_one(job: tuple[str, int, list[str], str]) -> list[dict[str, Any]]:
+def train_gym_id(
+    env_id: str,
+    seed: int,
+    kwargs: dict[str, Any],
+    budget: int,
+    period: int = PERIOD,
+    evaluate: Callable[[Any, gym.Env], dict[str, float]] = episode_returns,
+) -> list[dict[str, Any]]:
+    """Train ``CMEPolicyIteration("CMEPolicy", env_id, seed=seed, **kwargs)`` (the library's
+    defaults, and the env's preset if it has one) for ``budget`` env steps, evaluating every
+    ``period`` steps on a fresh ``env_id`` seeded ``seed + EVAL_SEED_OFFSET`` (the same starts at
+    every evaluation); one row per evaluation."""
+    torch.set_num_threads(1)
+    model = CMEPolicyIteration("CMEPolicy", env_id, seed=seed, **kwargs)
+    model.set_logger(configure(None, []))
+
+    def evaluation_env() -> gym.Env:
+        env = Monitor(gym.make(env_id))
+        env.reset(seed=seed + EVAL_SEED_OFFSET)
+        return env
+
+    return evaluation_loop(model, evaluation_env, env_id, seed, budget, period, evaluate)
+
+
+@dataclass(frozen=True)
+class Job:
+    """One seed of one env: the Hydra config ``env`` with ``overrides`` (``steps`` None: the
+    config's budget), or with ``steps`` given the Gymnasium id ``env`` with constructor
+    ``kwargs`` (JSON); its record goes to results/<stem>/<env>_seed<seed>.json."""
+
+    env: str
+    seed: int
+    overrides: tuple[str, ...]
+    stem: str
+    steps: int | None = None
+    kwargs: str = "{}"
+
+    @property
+    def record(self) -> Path:
+        return RESULTS / self.stem / f"{self.env}_seed{self.seed}.json"
+
+
+def run_one(job: Job) -> list[dict[str, Any]]:
     """One seed of one env, read from its record if an earlier run of the benchmark finished it."""
-    env_name, seed, overrides, stem = job
-    record = RESULTS / stem / f"{env_name}_seed{seed}.json"
-    if record.exists():
-        return json.loads(record.read_text())["curve"]
-    curve = train_with_evaluations(env_name, seed, overrides, int(compose_config([f"env={env_name}"]).total_timesteps))
-    record.parent.mkdir(parents=True, exist_ok=True)
-    temporary = record.with_suffix(".tmp")  # a stop mid-write leaves no half record
-    temporary.write_text(json.dumps({"overrides": overrides, "command": command_line(), "curve": curve}))
-    os.replace(temporary, record)
+    if job.record.exists():
+        return json.loads(job.record.read_text())["curve"]
+    if job.steps is None:
+        budget = int(compose_config([f"env={job.env}"]).total_timesteps)
+        curve = train_with_evaluations(job.env, job.seed, list(job.overrides), budget)
+    else:
+        curve = train_gym_id(job.env, job.seed, json.loads(job.kwargs), job.steps)
+    job.record.parent.mkdir(parents=True, exist_ok=True)
+    temporary = job.record.with_suffix(".tmp")  # a stop mid-write leaves no half record
+    temporary.write_text(
+        json.dumps({"overrides": list(job.overrides), "kwargs": job.kwargs, "command": command_line(), "curve": curve})
+    )
+    os.replace(temporary, job.record)
     return curve
 
 
-def summarise(env_name: str, curves: list[list[dict[str, Any]]], key: str = "return_mean") -> list[Any]:
+def summarise(env_name: str, curves: list[list[dict[str, Any]]], target: float, key: str = "return_mean") -> list[Any]:
     """One row of the report: reach, final returns, worst seed, worst evaluation after the target,
     of the policy the rows' ``key`` measured (``last_return_mean``: the last policy where another was deployed)."""
-    target = TARGETS[env_name]
     finals = [curve[-1][key] for curve in curves]
     reached = [next((i for i, row in enumerate(curve) if row[key] >= target), None) for curve in curves]
     steps_to = [curve[i]["steps"] for curve, i in zip(curves, reached, strict=True) if i is not None]
@@ -172,22 +224,33 @@ def summarise(env_name: str, curves: list[list[dict[str, Any]]], key: str = "ret
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--envs", nargs="+", default=list(TARGETS), choices=list(TARGETS))
+    parser.add_argument("--envs", nargs="*", default=list(TARGETS), choices=list(TARGETS))
     parser.add_argument("--seeds", nargs="+", type=int, default=list(range(10)))
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--overrides", nargs="*", default=[], help="Hydra overrides for every run")
+    parser.add_argument(
+        "--env-id", help="also a Gymnasium id at the library's defaults (its preset if any), with --steps and --target"
+    )
+    parser.add_argument("--steps", type=int, help="--env-id: env steps per run")
+    parser.add_argument("--target", type=float, help="--env-id: the return that counts as solved")
+    parser.add_argument("--kwargs", default="{}", help="--env-id: constructor arguments of CMEPolicyIteration, as JSON")
     parser.add_argument("--stem", default="learning_quality", help="name of the results/<stem>.{md,csv,png} files")
     parser.add_argument("--report-only", action="store_true", help="report the runs on record, train nothing")
     args = parser.parse_args()
-    jobs = [(env_name, seed, args.overrides, args.stem) for env_name in args.envs for seed in args.seeds]
+    if args.env_id and (args.steps is None or args.target is None):
+        parser.error("--env-id needs --steps and --target")
+    targets = {**{name: TARGETS[name] for name in args.envs}, **({args.env_id: args.target} if args.env_id else {})}
+    jobs = [Job(name, seed, tuple(args.overrides), args.stem) for name in args.envs for seed in args.seeds]
+    if args.env_id:
+        jobs += [Job(args.env_id, seed, (), args.stem, args.steps, args.kwargs) for seed in args.seeds]
     if args.report_only:
-        jobs = [job for job in jobs if (RESULTS / args.stem / f"{job[0]}_seed{job[1]}.json").exists()]
+        jobs = [job for job in jobs if job.record.exists()]
     start = time.perf_counter()
     with multiprocessing.get_context("spawn").Pool(args.workers) as pool:
         results = pool.map(run_one, jobs, chunksize=1)
     curves: dict[str, list[list[dict[str, Any]]]] = {}
-    for (env_name, *_), curve in zip(jobs, results, strict=True):
-        curves.setdefault(env_name, []).append(curve)
+    for job, curve in zip(jobs, results, strict=True):
+        curves.setdefault(job.env, []).append(curve)
     header = [
         "env",
         "steps",
@@ -203,13 +266,12 @@ def main() -> None:
     ]
     rows = []
     for env_name, runs in curves.items():
-        rows.append(summarise(env_name, runs))
+        rows.append(summarise(env_name, runs, targets[env_name]))
         if all("last_return_mean" in row for curve in runs for row in curve):
-            rows.append(summarise(env_name, runs, "last_return_mean"))
+            rows.append(summarise(env_name, runs, targets[env_name], "last_return_mean"))
     table = markdown_table(header, rows)
-    seeds = sorted({seed for _, seed, *_ in jobs})
-    records = [RESULTS / args.stem / f"{env_name}_seed{seed}.json" for env_name, seed, *_ in jobs]
-    made_by = sorted({json.loads(record.read_text())["command"] for record in records})
+    seeds = sorted({job.seed for job in jobs})
+    made_by = sorted({json.loads(job.record.read_text())["command"] for job in jobs})
     text = (
         f"# Learning quality of CMEPolicyIteration\n\nCommand: `{command_line()}`; the runs: "
         + "; ".join(f"`{command}`" for command in made_by)
@@ -224,7 +286,7 @@ def main() -> None:
         f"workers (runs on record are read, not rerun).\n\n{table}\n"
     )
     write_report(args.stem, text, results)
-    panels = {name: (runs, TARGETS[name], "target") for name, runs in curves.items()}
+    panels = {name: (runs, targets[name], "target") for name, runs in curves.items()}
     plot_learning_curves(panels, f"{args.stem}.png")
 
 
