@@ -5,6 +5,7 @@ import copy
 
 import numpy as np
 import pytest
+import torch
 from gymnasium import spaces
 
 from cme_agent import CMEPolicyIteration
@@ -118,3 +119,22 @@ def test_the_deployed_policy_survives_save_load_and_restart(trained, tmp_path):
     assert not loaded.policy.deploys_selected and (loaded.predict(obs)[0] == model.policy.last_policy_actions(obs)).all()
     model.policy.restart()
     assert not model.policy.deploys_selected and model.policy.deployed_psi.numel() == 0
+
+
+def test_consider_for_deployment_rules(trained):
+    """At least deploy_min_episodes episodes; a lower mean is not deployed; a tie goes to the newer policy."""
+    policy = copy.deepcopy(trained[0].policy)
+    policy.improvement = ImprovementConfig(deploy="best_return", deploy_min_episodes=2)
+    policy.restart()
+    policy.theta_psi = torch.ones(3)
+    assert not policy.consider_for_deployment([100.0], iteration=3)  # one episode of the two needed
+    assert policy.consider_for_deployment([8.0, 12.0], iteration=3) and int(policy.deployed_iteration) == 3
+    policy.theta_psi = torch.full((4,), 2.0)
+    assert not policy.consider_for_deployment([9.0, 10.0], iteration=4)
+    assert policy.deployed_psi.tolist() == [1.0, 1.0, 1.0]
+    assert policy.consider_for_deployment([10.0, 10.0], iteration=5)
+    assert int(policy.deployed_iteration) == 5 and policy.deployed_psi.tolist() == [2.0] * 4
+    policy.theta_psi.fill_(7.0)  # the deployed weights are a copy
+    assert policy.deployed_psi.tolist() == [2.0] * 4
+    policy.improvement = ImprovementConfig()
+    assert not policy.consider_for_deployment([1e9, 1e9], iteration=6) and int(policy.deployed_iteration) == 5
