@@ -17,7 +17,7 @@ from the records.
     python benchmarks/learning_quality.py --envs pendulum cartpole --seeds 0 1 2 [--workers 2]
     python benchmarks/learning_quality.py --stem learning_quality_soft --overrides agent.improvement.method=soft
     python benchmarks/learning_quality.py --envs --env-id InvertedPendulum-v5 --steps 5000 --target 950 \
-        --kwargs '{"improvement": {"deploy": "best_return"}}' --stem lq_inverted_pendulum
+        --kwargs '{"gamma": 0.95}' --stem lq_inverted_pendulum
 """
 
 from __future__ import annotations
@@ -84,29 +84,6 @@ def train_with_evaluations(
     return evaluation_loop(model, lambda: make_eval_env(cfg), env_name, seed, budget, period, evaluate)
 
 
-class LastPolicy:
-    """The agent's last policy (the one data acquisition acts with), with the ``predict`` of an
-    SB3 model, so that it is evaluated beside the deployed one when ``improvement.deploy`` selects
-    another (:meth:`cme_agent.policy.CMEPolicy.last_policy_actions`).
-
-    :param model: a CMEPolicyIteration
-    """
-
-    def __init__(self, model: Any) -> None:
-        self.model = model
-
-    def predict(
-        self, observation: Any, state: Any = None, episode_start: Any = None, deterministic: bool = True
-    ) -> tuple[Any, Any]:
-        return self.model.policy.last_policy_actions(observation, deterministic), state
-
-
-def deploys_selection(model: Any) -> bool:
-    """Whether ``model`` is a CMEPolicyIteration whose ``predict`` may act with another policy than its last."""
-    config = getattr(model, "improvement_config", None)
-    return config is not None and config.deploy != "last"
-
-
 def evaluation_loop(
     model: Any,
     make_evaluation_env: Callable[[], gym.Env],
@@ -118,9 +95,7 @@ def evaluation_loop(
 ) -> list[dict[str, Any]]:
     """Train ``model`` until it has taken ``budget`` env steps, pausing every ``period`` steps to
     ``evaluate`` it on a fresh ``make_evaluation_env()``; one row per pause (with the training
-    seconds so far and q). ``env_name`` and ``seed`` label the rows. When the agent deploys a
-    selected policy (``improvement.deploy``), its last policy is evaluated too, on the same
-    starts, into ``last_<statistic>``: the same run measures both."""
+    seconds so far and q). ``env_name`` and ``seed`` label the rows."""
     rows, train_seconds = [], 0.0
     while model.num_timesteps < budget:
         start = time.perf_counter()
@@ -128,9 +103,6 @@ def evaluation_loop(
         train_seconds += time.perf_counter() - start
         row = {"env": env_name, "seed": seed, "steps": model.num_timesteps, "iteration": getattr(model, "iteration", None)}
         row.update(evaluate(model, make_evaluation_env()))
-        if deploys_selection(model):
-            row.update({f"last_{key}": value for key, value in evaluate(LastPolicy(model), make_evaluation_env()).items()})
-            row.update(deployed_iteration=int(model.policy.deployed_iteration))
         row.update(n_features=getattr(model, "q", 0), train_seconds=round(train_seconds, 1))
         rows.append(row)
         print(
@@ -199,16 +171,15 @@ def run_one(job: Job) -> list[dict[str, Any]]:
     return curve
 
 
-def summarise(env_name: str, curves: list[list[dict[str, Any]]], target: float, key: str = "return_mean") -> list[Any]:
-    """One row of the report: reach, final returns, worst seed, worst evaluation after the target,
-    of the policy the rows' ``key`` measured (``last_return_mean``: the last policy where another was deployed)."""
-    finals = [curve[-1][key] for curve in curves]
-    reached = [next((i for i, row in enumerate(curve) if row[key] >= target), None) for curve in curves]
+def summarise(env_name: str, curves: list[list[dict[str, Any]]], target: float) -> list[Any]:
+    """One row of the report: reach, final returns, worst seed, worst evaluation after the target."""
+    finals = [curve[-1]["return_mean"] for curve in curves]
+    reached = [next((i for i, row in enumerate(curve) if row["return_mean"] >= target), None) for curve in curves]
     steps_to = [curve[i]["steps"] for curve, i in zip(curves, reached, strict=True) if i is not None]
-    after = [min(row[key] for row in curve[i:]) for curve, i in zip(curves, reached, strict=True) if i is not None]
+    after = [min(row["return_mean"] for row in curve[i:]) for curve, i in zip(curves, reached, strict=True) if i is not None]
     spread = statistics.stdev(finals) if len(finals) > 1 else 0.0
     return [
-        env_name if key == "return_mean" else f"{env_name} ({key.removesuffix('_return_mean')} policy)",
+        env_name,
         curves[0][-1]["steps"],
         f"{target:g}",
         f"{len(steps_to)}/{len(curves)}",
@@ -264,12 +235,7 @@ def main() -> None:
         "train s",
         "q",
     ]
-    rows = []
-    for env_name, runs in curves.items():
-        rows.append(summarise(env_name, runs, targets[env_name]))
-        if all("last_return_mean" in row for curve in runs for row in curve):
-            rows.append(summarise(env_name, runs, targets[env_name], "last_return_mean"))
-    table = markdown_table(header, rows)
+    table = markdown_table(header, [summarise(env_name, runs, targets[env_name]) for env_name, runs in curves.items()])
     seeds = sorted({job.seed for job in jobs})
     made_by = sorted({json.loads(job.record.read_text())["command"] for job in jobs})
     text = (
@@ -278,9 +244,7 @@ def main() -> None:
         + "\n\n"
         f"Seeds {seeds}; every {PERIOD:,} env steps an evaluation: 10 episodes of the deterministic policy from "
         "fixed random starts (the same at every evaluation of a seed, seeded apart from training). Final return = "
-        "the last evaluation of the policy predict() acts with (the last policy, not the best one seen, unless "
-        "improvement.deploy selects one: then a '(last policy)' row beside it measures the last policy of the same "
-        "runs on the same starts); 'median steps to target' over the seeds "
+        "the last evaluation (the last policy, not the best one seen); 'median steps to target' over the seeds "
         "that reached it; 'worst eval after target' = the lowest evaluation of any seed after its first at or "
         f"above the target. Wall-clock of this invocation {time.perf_counter() - start:.0f} s with {args.workers} "
         f"workers (runs on record are read, not rerun).\n\n{table}\n"

@@ -416,11 +416,10 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         callback.on_rollout_start()  # an iteration boundary: checkpoints are taken here
         if self.reset_envs_each_iteration:
             self._reset_envs()
-        greedy_returns: list[float] = []
         with self._timed("data_acquisition"):
             for _ in range(n_steps):
                 random_phase = self.num_timesteps < self.exploration_config.random_steps or self.dynamics.obs_encoder.needs_fit
-                actions = self._behaviour(lambda: self.policy.last_policy_actions(self._last_obs), random_phase)
+                actions = self._behaviour(lambda: self.policy.predict(self._last_obs, deterministic=True)[0], random_phase)
                 new_obs, rewards, dones, infos = self.env.step(actions)
                 self.num_timesteps += self.env.num_envs
                 self._store(self._last_obs, actions, rewards, new_obs, dones, infos)
@@ -429,25 +428,9 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
                     return None
                 self._update_info_buffer(infos, dones)
                 self._last_obs = new_obs
-                greedy_returns.extend(self._behaviour.greedy_returns(np.asarray(rewards, dtype=np.float64), dones).tolist())
                 self._behaviour.end_episodes(dones)
-        self._select_deployed_policy(greedy_returns)
         callback.on_rollout_end()
         return self.store.get(slice(start, len(self.store)))
-
-    def _select_deployed_policy(self, greedy_returns: list[float]) -> None:
-        """``improvement.deploy="best_return"``: the policy that acted in this acquisition (the last
-        improvement's) becomes the one :meth:`predict` acts with if its greedy episodes returned
-        at least as much as the deployed one's (:meth:`CMEPolicy.consider_for_deployment`).
-
-        :param greedy_returns: returns of the greedy episodes that ended in this acquisition
-        """
-        if self.improvement_config.deploy == "last" or self.iteration == 0:
-            return
-        self.policy.consider_for_deployment(greedy_returns, self.iteration)
-        if self.policy.deploys_selected:
-            self.logger.record("train/deployed_return", float(self.policy.deployed_return))
-            self.logger.record("train/deployed_iteration", int(self.policy.deployed_iteration))
 
     def _store(
         self,

@@ -233,10 +233,6 @@ IMPROVEMENT_METHODS = ("smoothed_greedy", "soft")
 """The policy improvement steps: the paper's greedy step on the smoothed Q, and KL-regularised
 (softmax) policy iteration."""
 
-DEPLOY_CHOICES = ("last", "best_return")
-"""Which of the policies seen so far ``predict()`` acts with: the last one, or the one whose
-greedy training episodes returned the most (:meth:`~cme_agent.policy.CMEPolicy.consider_for_deployment`)."""
-
 
 @dataclass(frozen=True)
 class ImprovementConfig:
@@ -262,13 +258,6 @@ class ImprovementConfig:
     :param decay: soft only, in (0, 1]: weight of the past sum per improvement (1: the plain
         sum, every estimate kept; below 1 the policy forgets estimates of older models over
         about 1 / (1 - decay) improvements and its beta_k stops growing at beta / (1 - decay))
-    :param deploy: which policy ``predict()`` acts with: ``"last"`` (the default: the last
-        improvement's) or ``"best_return"``: of the policies that acted in data acquisition,
-        the one with the highest mean return over the greedy (non-exploratory) training
-        episodes that ended while it acted. Learning is the same either way (data
-        acquisition always acts with the last policy); only what ``predict()`` returns differs.
-    :param deploy_min_episodes: ``"best_return"`` only: greedy episodes a policy must have
-        ended before it can be deployed (its evidence)
     """
 
     method: str = "smoothed_greedy"
@@ -279,13 +268,9 @@ class ImprovementConfig:
     beta: float = 0.5
     scale: str = "spread"
     decay: float = 0.9
-    deploy: str = "last"
-    deploy_min_episodes: int = 1
 
     def __post_init__(self) -> None:
         check_choice("improvement.method", self.method, IMPROVEMENT_METHODS)
-        check_choice("improvement.deploy", self.deploy, DEPLOY_CHOICES)
-        check_positive_int("improvement.deploy_min_episodes", self.deploy_min_episodes)
         check_positive("improvement.beta", self.beta)
         check_choice("improvement.scale", self.scale, ("spread", "fixed"))
         check_unit_interval("improvement.decay", self.decay, open_low=True)

@@ -38,8 +38,6 @@ class BehaviourPolicy:
         self.held = self._uniform(n_envs)
         self.hold_left = np.zeros(n_envs, dtype=np.int64)
         self.noise = np.zeros((n_envs, *action_space.shape))
-        self.episode_return = np.zeros(n_envs)
-        self.clean = np.ones(n_envs, dtype=bool)  # no uniformly random step in the episode so far
 
     def _uniform(self, n: int) -> np.ndarray:
         if self.discrete:
@@ -63,7 +61,6 @@ class BehaviourPolicy:
         """
         n = len(self.explore)
         if random_phase:
-            self.clean[:] = False
             return self._held_random(np.ones(n, dtype=bool)).copy()
         actions = greedy()
         if self.discrete:
@@ -76,29 +73,14 @@ class BehaviourPolicy:
         self.noise = rho * self.noise + np.sqrt(1 - rho**2) * innovation
         return np.clip(actions + self.noise * self.explore[:, None], self.space.low, self.space.high).astype(self.space.dtype)
 
-    def greedy_returns(self, rewards: np.ndarray, dones: np.ndarray) -> np.ndarray:
-        """Add one step's rewards to the episodes' returns; the returns of the episodes that
-        ended at this step and were greedy throughout (not exploratory, no uniformly random
-        step). Call before :meth:`end_episodes`.
-
-        :param rewards: (n_envs,) the step's rewards
-        :param dones: (n_envs,) whether each env's episode ended at this step
-        :return: (n_finished,) returns, in env order
-        """
-        self.episode_return += rewards
-        return self.episode_return[dones & self.clean & ~self.explore].copy()
-
     def end_episodes(self, dones: np.ndarray) -> None:
-        """For each env whose episode ended: decide afresh whether the next one explores, drop
-        held actions and noise, start its return from 0."""
+        """For each env whose episode ended: decide afresh whether the next one explores, drop held actions and noise."""
         redraw = self.rng.random(len(dones)) < self.config.explore_fraction
         self.explore = np.where(dones, redraw, self.explore)
         self.hold_left[dones] = 0
         self.noise[dones] = 0.0
-        self.episode_return[dones] = 0.0
-        self.clean[dones] = True
 
-    _STATE = ("explore", "held", "hold_left", "noise", "episode_return", "clean")
+    _STATE = ("explore", "held", "hold_left", "noise")
 
     def state_dict(self) -> dict[str, torch.Tensor]:
         """Per-env exploration state as tensors, for checkpoints."""
@@ -109,7 +91,4 @@ class BehaviourPolicy:
         if len(state["explore"]) != len(self.explore):
             raise ValueError(f"exploration state of {len(state['explore'])} envs, but there are {len(self.explore)}")
         for name in self._STATE:
-            if name in state:
-                setattr(self, name, state[name].numpy().astype(getattr(self, name).dtype))
-        if "clean" not in state:  # a checkpoint written before the returns were kept: its running episodes count for nothing
-            self.clean[:] = False
+            setattr(self, name, state[name].numpy().astype(getattr(self, name).dtype))

@@ -17,10 +17,8 @@ the policy is pi(a|s) = softmax_a(beta_k Qbar_k(s, a)) over the candidates (:met
 
 from __future__ import annotations
 
-import contextlib
 import itertools
-import math
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -143,14 +141,6 @@ class CMEPolicy(BasePolicy):
         # soft improvement only: n_k, the (decayed) count of estimates averaged, and beta_k on Qbar_k
         self.register_buffer("improvements", torch.zeros(()))
         self.register_buffer("inverse_temperature", torch.zeros(()))
-        # improvement.deploy="best_return": the deployed policy's Q weights, the mean return of
-        # its greedy training episodes (-inf: none deployed, predict() acts with the last policy)
-        # and the iteration whose improvement made it
-        self.register_buffer("deployed_phi", torch.zeros(self.dynamics.p))
-        self.register_buffer("deployed_psi", torch.zeros(0))
-        self.register_buffer("deployed_temperature", torch.zeros(()))
-        self.register_buffer("deployed_return", torch.tensor(-math.inf))
-        self.register_buffer("deployed_iteration", torch.tensor(-1))
         self.register_buffer("candidates", self._make_candidates())
         self._candidate_factor: tuple[tuple[int, int], torch.Tensor] | None = None
         self._weighted_candidates: tuple[torch.Tensor, tuple[int, int], torch.Tensor] | None = None
@@ -194,19 +184,10 @@ class CMEPolicy(BasePolicy):
         return self.improvement.method == "soft"
 
     def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
-        theta_phi = state_dict.get(prefix + "theta_phi")
-        if theta_phi is not None:  # files written before the soft improvement or the deployed policy
-            for name, default in (
-                ("improvements", torch.zeros(())),
-                ("inverse_temperature", torch.zeros(())),
-                ("deployed_phi", torch.zeros_like(theta_phi)),
-                ("deployed_psi", torch.zeros(0)),
-                ("deployed_temperature", torch.zeros(())),
-                ("deployed_return", torch.tensor(-math.inf)),
-                ("deployed_iteration", torch.tensor(-1)),
-            ):
-                state_dict.setdefault(prefix + name, default.to(theta_phi.device))
-        resize_buffers(self, state_dict, prefix, {"theta_psi": 0, "deployed_psi": 0})
+        resize_buffers(self, state_dict, prefix, {"theta_psi": 0})
+        for name in ("improvements", "inverse_temperature"):  # files written before the soft improvement
+            if prefix + "theta_phi" in state_dict:
+                state_dict.setdefault(prefix + name, torch.zeros((), device=state_dict[prefix + "theta_phi"].device))
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     # ------------------------------------------------------------------ Q
@@ -417,17 +398,6 @@ class CMEPolicy(BasePolicy):
         """
         if isinstance(observation, tuple) and len(observation) == 2 and isinstance(observation[1], dict):
             return super().predict(observation, state, episode_start, deterministic)  # SB3's error for the Gym/VecEnv mix-up
-        with self.deployed_weights():
-            return self.last_policy_actions(observation, deterministic), state
-
-    def last_policy_actions(self, observation: np.ndarray, deterministic: bool = True) -> np.ndarray:
-        """The actions of the last improvement's policy (what data acquisition acts with), whatever
-        ``improvement.deploy`` says :meth:`predict` returns.
-
-        :param observation: one observation (obs_dim,) or a batch (N, obs_dim)
-        :param deterministic: as in :meth:`predict`
-        :return: the action(s), shaped as :meth:`predict` returns them
-        """
         obs = np.asarray(observation, dtype=np.float32)
         vectorized = is_vectorized_observation(obs, self.observation_space)
         with torch.no_grad():
@@ -435,67 +405,16 @@ class CMEPolicy(BasePolicy):
                 torch.as_tensor(obs.reshape(-1, *self.observation_space.shape), device=self.device), deterministic
             )
         actions = actions.cpu().numpy().reshape((-1, *self.action_space.shape))
-        return actions if vectorized else actions.squeeze(axis=0)
-
-    # ------------------------------------------------------------------ deployment
-    @property
-    def deploys_selected(self) -> bool:
-        """Whether :meth:`predict` acts with a deployed policy other than the last (``improvement.deploy="best_return"``,
-        once a policy has been deployed)."""
-        return self.improvement.deploy != "last" and bool(torch.isfinite(self.deployed_return))
-
-    @contextlib.contextmanager
-    def deployed_weights(self) -> Iterator[None]:
-        """Within the block, Q (and everything that acts) reads the deployed policy's weights
-        (when :attr:`deploys_selected`; else the last ones)."""
-        if not self.deploys_selected:
-            yield
-            return
-        last = self.theta_phi, self.theta_psi, self.inverse_temperature
-        self.theta_phi, self.theta_psi, self.inverse_temperature = (
-            self.deployed_phi,
-            self.deployed_psi,
-            self.deployed_temperature,
-        )
-        try:
-            yield
-        finally:
-            self.theta_phi, self.theta_psi, self.inverse_temperature = last
-
-    def consider_for_deployment(self, greedy_returns: list[float], iteration: int) -> bool:
-        """``improvement.deploy="best_return"``: deploy the last policy if its greedy training
-        episodes (at least ``deploy_min_episodes`` of them, ended while it acted) returned on
-        average at least as much as the deployed policy's did (ties go to the newer policy).
-
-        :param greedy_returns: returns of the greedy episodes that ended while the last policy acted
-        :param iteration: the iteration whose improvement made the last policy
-        :return: whether the last policy is now the deployed one
-        """
-        if self.improvement.deploy == "last" or len(greedy_returns) < self.improvement.deploy_min_episodes:
-            return False
-        mean_return = float(np.mean(greedy_returns))
-        if mean_return < float(self.deployed_return):
-            return False
-        self.deployed_phi = self.theta_phi.clone()
-        self.deployed_psi = self.theta_psi.clone()
-        self.deployed_temperature = self.inverse_temperature.clone()
-        self.deployed_return.fill_(mean_return)
-        self.deployed_iteration.fill_(iteration)
-        return True
+        return (actions if vectorized else actions.squeeze(axis=0)), state
 
     # ------------------------------------------------------------------ improvement
     def restart(self) -> None:
-        """Forget Q (theta_phi, theta_psi = 0, the soft average's count and beta_k) and the
-        deployed policy, as before the first improvement: after the model moved to new
-        coordinates, the old weights mean nothing."""
+        """Forget Q (theta_phi, theta_psi = 0, the soft average's count and beta_k), as before the
+        first improvement: after the model moved to new coordinates, the old weights mean nothing."""
         self.theta_phi = torch.zeros_like(self.theta_phi)
         self.theta_psi = self.theta_psi.new_zeros(0)
         self.improvements.zero_()
         self.inverse_temperature.zero_()
-        self.deployed_phi = torch.zeros_like(self.theta_phi)
-        self.deployed_psi = self.theta_psi.new_zeros(0)
-        self.deployed_return.fill_(-math.inf)
-        self.deployed_iteration.fill_(-1)
 
     def improve(self, value_weights: torch.Tensor, gamma: float, omega: float, states: torch.Tensor | None = None) -> None:
         """Policy improvement on the linear weights of Q, with
