@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing
-import os
 import statistics
 import time
 from collections.abc import Callable
@@ -35,7 +34,7 @@ from typing import Any
 
 import gymnasium as gym
 import torch
-from common import RESULTS, command_line, compose_config, markdown_table, plot_learning_curves, write_report
+from common import RESULTS, command_line, compose_config, markdown_table, plot_learning_curves, save_record, write_report
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.logger import Logger, configure
 from stable_baselines3.common.monitor import Monitor
@@ -162,12 +161,8 @@ def run_one(job: Job) -> list[dict[str, Any]]:
         curve = train_with_evaluations(job.env, job.seed, list(job.overrides), budget)
     else:
         curve = train_gym_id(job.env, job.seed, json.loads(job.kwargs), job.steps)
-    job.record.parent.mkdir(parents=True, exist_ok=True)
-    temporary = job.record.with_suffix(".tmp")  # a stop mid-write leaves no half record
-    temporary.write_text(
-        json.dumps({"overrides": list(job.overrides), "kwargs": job.kwargs, "command": command_line(), "curve": curve})
-    )
-    os.replace(temporary, job.record)
+    record = {"overrides": list(job.overrides), "kwargs": job.kwargs, "command": command_line(), "curve": curve}
+    save_record(job.record, record)
     return curve
 
 

@@ -29,7 +29,6 @@ import argparse
 import json
 import math
 import multiprocessing
-import os
 import statistics
 import time
 from collections.abc import Callable, Sequence
@@ -40,7 +39,7 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-from common import RESULTS, code_version, command_line, compose_config, markdown_table, pyplot, resident_bytes
+from common import RESULTS, code_version, command_line, compose_config, markdown_table, pyplot, resident_bytes, save_record
 from learning_quality import TARGETS, episode_returns, train_with_evaluations
 from quadcopter_learning import controller_statistics, flight_statistics
 from stable_baselines3.common.logger import KVWriter, Logger
@@ -215,9 +214,7 @@ def execute(job: tuple[Run, Path]) -> str:
         "evaluations": evaluations,
         "iterations": log.rows,
     }
-    temporary = path.with_suffix(".tmp")
-    temporary.write_text(json.dumps(record))
-    os.replace(temporary, path)
+    save_record(path, record)
     return f"{run.name}: {evaluations[-1]['return_mean']:.1f} after {run.steps} steps ({record['seconds']:.0f} s)"
 
 

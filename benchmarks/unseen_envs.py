@@ -33,7 +33,6 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing
-import os
 import resource
 import statistics
 import time
@@ -45,7 +44,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import torch
-from common import RESULTS, code_version, command_line, markdown_table, pyplot, resident_bytes
+from common import RESULTS, code_version, command_line, markdown_table, pyplot, resident_bytes, save_record
 from gymnasium import spaces
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
@@ -184,14 +183,6 @@ def evaluate(model: Any, env: VecEnv, episodes: int) -> dict[str, float]:
 def peak_rss_mib() -> float:
     """Peak resident memory of this process so far, MiB (``ru_maxrss`` is in KiB on Linux)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-
-
-def save_record(path: Path, record: dict[str, Any]) -> None:
-    """Write ``record`` as JSON atomically (an interrupted job never leaves a broken file)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_suffix(".tmp")
-    temporary.write_text(json.dumps(record, indent=1))
-    os.replace(temporary, path)
 
 
 def run_job(job: Job) -> str:
