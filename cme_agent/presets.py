@@ -57,6 +57,8 @@ _PRESETS: dict[str, dict[str, Any]] = {
         "policy_kwargs": {
             "phi": {"resolution": [21, 15]},  # angle (periodic) x angular velocity
             "observation": {"angle_pairs": [[0, 1]]},
+            # 21 torques: with 5 the preset ends at -323 +- 162 (10 seeds, benchmarks/learning_quality.py)
+            "action_search": {"grid_size": 21},
         },
         "evaluation": {
             # |C| = 25 p, a well-determined evaluation: final returns -184, -164, -176 vs the above with 2000
@@ -66,6 +68,7 @@ _PRESETS: dict[str, dict[str, Any]] = {
     # obs: x, x_dot, theta, theta_dot; velocities unbounded
     "CartPole-v1": {
         "gamma": 0.99,
+        "omega": 0.5,
         "policy_kwargs": {
             "phi": {"resolution": [5, 7, 9, 9]},
             # finite bounds for the unbounded velocities, and a box narrower than the space's
@@ -78,6 +81,7 @@ _PRESETS: dict[str, dict[str, Any]] = {
     # obs: cos/sin of both joint angles, velocities in [-4pi, 4pi], [-9pi, 9pi]
     "Acrobot-v1": {
         "gamma": 0.99,
+        "omega": 0.5,
         "policy_kwargs": {
             "phi": {"resolution": [7, 7, 5, 5]},  # angle 1, angle 2 (periodic), velocity 1, velocity 2
             "observation": {"angle_pairs": [[0, 1], [2, 3]]},
@@ -90,6 +94,7 @@ _PRESETS: dict[str, dict[str, Any]] = {
     # obs: position in [-1.2, 0.6], velocity in [-0.07, 0.07]
     "MountainCar-v0": {
         "gamma": 0.99,
+        "omega": 0.5,
         "policy_kwargs": {"phi": {"resolution": [15, 15]}},
         # the goal is only found by temporally extended exploration
         "exploration": {"random_steps": 2000, "explore_fraction": 0.5, "repeat": 15},
@@ -99,7 +104,8 @@ _PRESETS: dict[str, dict[str, Any]] = {
     # obs: position in [-1.2, 0.6], velocity in [-0.07, 0.07]
     "MountainCarContinuous-v0": {
         "gamma": 0.99,
-        "policy_kwargs": {"phi": {"resolution": [15, 15]}},
+        "omega": 0.5,
+        "policy_kwargs": {"phi": {"resolution": [15, 15]}, "action_search": {"grid_size": 21}},
         # the goal is only found by temporally extended exploration
         "exploration": {"random_steps": 2000, "explore_fraction": 0.5, "noise_std": 0.8, "repeat": 20},
         # |C| with which this preset was measured (p = 226); the library default would be 2,260
@@ -135,13 +141,17 @@ _PRESETS: dict[str, dict[str, Any]] = {
     # With these settings, 3000 steps reach a return of ~39 (of ~40 possible) on 20 of 20 seeds.
     "ToyChain-v0": {
         "gamma": 0.95,  # horizon ~20 steps: the goal is 11-15 full steps from the start
+        "omega": 0.5,
         "steps_per_iteration": 150,  # three 50-step episodes per iteration
         "feature_selection": {"bandwidths": [0.3, 0.6, 1.2]},  # wider than the default: the dynamics are smooth (a shift of x)
         "exploration": {
             "random_steps": 300,  # six random episodes before the first greedy one
             "repeat": 5,  # random actions held 5 steps, AR(1) noise: random walks travel ~2x further
         },
-        "policy_kwargs": {"phi": {"resolution": [11]}},  # RBF grid spacing 0.2 in x, below the reward width sigma = 0.3
+        "policy_kwargs": {
+            "phi": {"resolution": [11]},  # RBF grid spacing 0.2 in x, below the reward width sigma = 0.3
+            "action_search": {"grid_size": 21},
+        },
     },
 }
 

@@ -32,18 +32,26 @@ def test_greedy_discrete_enumerates_the_actions():
 def test_greedy_box_grid_and_refinement():
     target = 0.33
     reward = RewardSpec(lambda obs, a: -((a[:, 0] - target) ** 2))
-    grid = _policy(spaces.Box(-2.0, 2.0, (1,), np.float32), reward=reward)
+    grid = _policy(spaces.Box(-2.0, 2.0, (1,), np.float32), action_search={"grid_size": 21}, reward=reward)
     actions, _ = grid.greedy(torch.zeros(2, 2))
     assert torch.all((actions[:, 0] - target).abs() <= 0.1)  # grid spacing 0.2
     refined = _policy(
-        spaces.Box(-2.0, 2.0, (1,), np.float32), action_search={"refine_steps": 30, "refine_lr": 0.005}, reward=reward
+        spaces.Box(-2.0, 2.0, (1,), np.float32),
+        action_search={"grid_size": 21, "refine_steps": 30, "refine_lr": 0.005},
+        reward=reward,
     )
     actions, _ = refined.greedy(torch.zeros(2, 2))
     assert torch.all((actions[:, 0] - target).abs() < 0.02)
 
 
+def test_default_box_candidates_are_full_push_either_way_or_none():
+    policy = _policy(spaces.Box(np.array([-3.0, 0.0], np.float32), np.array([3.0, 1.0], np.float32)))
+    expected = {(a, b) for a in (-3.0, 0.0, 3.0) for b in (0.0, 0.5, 1.0)}
+    assert {tuple(row) for row in policy.candidates.tolist()} == expected
+
+
 def test_greedy_follows_the_psi_weights():
-    policy = _policy(spaces.Box(-1.0, 1.0, (1,), np.float32))
+    policy = _policy(spaces.Box(-1.0, 1.0, (1,), np.float32), action_search={"grid_size": 21})
     # one kernel feature centred at state (0, 0) and normalised action 0.6, with a positive weight
     _grow(policy, torch.tensor([[0.0, 0.0, 0.6]]), torch.tensor([0.2]))
     policy.theta_psi = torch.ones(1)

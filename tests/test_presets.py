@@ -168,7 +168,7 @@ def test_the_hydra_agent_config_lists_every_setting_and_reads_the_presets():
 def test_top_level_settings_are_checked_and_defaulted_by_agent_config():
     from cme_agent.config import AgentConfig
 
-    assert build_config(AgentConfig, {"gamma": 0.9}, "agent") == AgentConfig(gamma=0.9, omega=0.5, steps_per_iteration=200)
+    assert build_config(AgentConfig, {"gamma": 0.9}, "agent") == AgentConfig(gamma=0.9, omega=0.2, steps_per_iteration=200)
     with pytest.raises(ValueError, match=r"gamma=1\.5 is invalid"):
         check_settings({"gamma": 1.5})
     with pytest.raises(ValueError, match=r"steps_per_iteration=0 is invalid"):
