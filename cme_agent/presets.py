@@ -57,7 +57,7 @@ _PRESETS: dict[str, dict[str, Any]] = {
         "policy_kwargs": {
             "phi": {"resolution": [21, 15]},  # angle (periodic) x angular velocity
             "observation": {"angle_pairs": [[0, 1]]},
-            # 21 torques: with 5 the preset ends at -323 +- 162 (10 seeds, benchmarks/learning_quality.py)
+            # 21 torques: with 5 the preset ends at -323.3 +- 149.7 (10 seeds, results/probe_pend_k5.md)
             "action_search": {"grid_size": 21},
         },
         "evaluation": {

@@ -80,6 +80,19 @@ def test_every_preset_builds_valid_configs_for_its_env(env_id):
     env.close()
 
 
+@pytest.mark.parametrize("env_id", sorted(set(ENV_IDS.values())))
+def test_presets_pin_the_planner_settings_they_were_measured_with(env_id):
+    """The library's planner defaults are chosen for envs without a preset; each preset keeps the
+    gamma, omega and (Box actions) candidate grid its env was measured with, so a change of those
+    defaults cannot move the classics."""
+    preset = preset_for(env_id)
+    assert {"gamma", "omega"} <= set(preset)
+    env = gym.make(env_id)
+    if isinstance(env.action_space, gym.spaces.Box):
+        assert "grid_size" in preset["policy_kwargs"]["action_search"]
+    env.close()
+
+
 def test_merge_user_overrides_a_nested_key_and_keeps_the_rest():
     preset = {
         "gamma": 0.98,
