@@ -377,7 +377,9 @@ class ActionSearchConfig:
     # model's errors matter less than between neighbours of a fine grid. InvertedPendulum-v5, 10
     # seeds, 5,000 steps, gamma 0.95, omega 0.2 (results/probe_ip_g95o2_k*.md,
     # lq_inverted_pendulum_g95_o02.md): 3 candidates 335.8 +- 361.1, 5: 109.5 +- 36.6, 21: 134.3 +-
-    # 81.4, 2 (no zero): 109.4 +- 48.7. Pendulum-v1's preset keeps 21 (5 ended at -323 +- 150 there).
+    # 81.4, 2 (no zero): 109.4 +- 48.7; seeds 10-19: 3 candidates 342.9 +- 322.6, 21: 84.0 +- 26.2.
+    # Reacher-v5 is worse with 3 (-12.1 vs -8.8, results/unseen_envs.md: its control cost wants small
+    # torques). Pendulum-v1's preset keeps 21 (5 ended at -323 +- 150 there).
     grid_size: int = 3
     max_grid_dims: int = 2
     n_samples: int = 256
