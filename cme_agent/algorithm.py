@@ -356,10 +356,11 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         config = encoder.config
         if not encoder.fit_dims or int(encoder.expansions) >= config.max_expansions or len(new_data) == 0:
             return
-        if encoder.outside_share(torch.cat([new_data.obs, new_data.next_obs])) <= config.expand_outside:
+        new_states = torch.cat([new_data.obs, new_data.next_obs])
+        if encoder.outside_share(new_states) <= config.expand_outside:
             return
         sample = self.store.sample(min(len(self.store), EXPANSION_REFIT_SIZE), self._torch_rng)
-        self.logger.info(self.dynamics.expand_observation_box(self._observed_states(), sample, self.model_update_config.l2))
+        self.logger.info(self.dynamics.expand_observation_box(new_states, sample, self.model_update_config.l2))
         self.policy.restart()
         self._value_weights = None
         self.logger.record("train/observation_box_expansions", int(encoder.expansions))
