@@ -343,9 +343,12 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
     def _fit_observation_box(self, new_data: Transitions) -> None:
         """Observation dims without usable bounds get their box from the data so far (the random
         phase). Later, when more than ``observation.expand_outside`` of an iteration's new
-        observations fall outside it, the box is expanded to cover D (at most
-        ``observation.max_expansions`` times): psi's centres keep their place, B is refit on a
-        sample of D and planning restarts (Q's weights belonged to the old phi).
+        observations fall outside it, the box is expanded to cover those new observations (at
+        most ``observation.max_expansions`` times): psi's centres keep their place, B is refit on
+        a sample of D and planning restarts (Q's weights belonged to the old phi). The new
+        observations, not all of D, set the expansion: the quantiles of D would leave out a
+        drift that is a small share of D (a cart pushed off centre for the first time), and the
+        policy would meet the box's edge again at once.
 
         :param new_data: the transitions of this iteration
         """

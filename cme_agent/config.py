@@ -423,7 +423,7 @@ class ObservationConfig:
     :param max_half_range: space bounds with a wider half-range (env units) are treated as
         unknown
     :param expand_outside: when more than this share of an iteration's new observations lies
-        outside the estimated box (in some estimated dim), the box is expanded to cover D, the
+        outside the estimated box (in some estimated dim), the box is expanded to cover those observations, the
         model carried into the new coordinates (psi's centres moved, B refit on D) and planning
         restarted (:meth:`cme_agent.dynamics.CMEDynamics.expand_observation_box`); in (0, 1]
     :param max_expansions: at most this many expansions per run (0: the first box is final)

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
-from cme_agent.config import ObservationConfig, _as_tuple
+from cme_agent.config import ObservationConfig
 
 PYTHON_BOUNDS_HINT = 'policy_kwargs={"observation": {"low": [...], "high": [...]}}'
 """How a user gives the normalisation box, shown wherever bounds are refused or missing."""
@@ -271,17 +271,3 @@ class ActionEncoder(torch.nn.Module):
         clamped to the bounds (float rounding must never step outside the space)."""
         actions = self.low + (encoded.clamp(-1, 1) + 1) * (self.high - self.low) / 2
         return torch.minimum(torch.maximum(actions, self.low), self.high)
-
-
-def _known_observations() -> dict[str, ObservationConfig]:
-    """TEMPORARY (until algorithm.py reads cme_agent.presets): the observation facts, read from
-    the presets, in the form algorithm.py imports today."""
-    from cme_agent.presets import preset_for, registered_presets
-
-    facts = {env_id: (preset_for(env_id) or {}).get("policy_kwargs", {}).get("observation") for env_id in registered_presets()}
-    facts = {env_id: fact for env_id, fact in facts.items() if env_id in ("Pendulum-v1", "Acrobot-v1", "CartPole-v1")}
-    return {env_id: ObservationConfig(**{k: _as_tuple(v) for k, v in fact.items()}) for env_id, fact in facts.items() if fact}
-
-
-KNOWN_OBSERVATIONS: dict[str, ObservationConfig] = _known_observations()
-"""TEMPORARY shim: delete with the import in algorithm.py (the presets hold these facts)."""

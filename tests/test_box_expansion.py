@@ -113,10 +113,12 @@ SMALL = {
 
 
 def test_an_agent_expands_its_box_as_the_data_outgrows_it_and_saves_it(tmp_path: Path):
-    model = CMEPolicyIteration("CMEPolicy", Drifting(), seed=0, **SMALL)
+    # more expansions allowed than iterations: every iteration's data is covered or triggers one
+    unlimited = {"observation": {"max_expansions": 10}}
+    model = CMEPolicyIteration("CMEPolicy", Drifting(), seed=0, policy_kwargs=unlimited, **SMALL)
     model.learn(600)
     encoder = model.dynamics.obs_encoder
-    assert 1 <= int(encoder.expansions) <= encoder.config.max_expansions
+    assert 1 <= int(encoder.expansions) <= 5
     states = model._observed_states()
     assert encoder.outside_share(states) < 0.05  # the box covers D after the last expansion
     model.save(tmp_path / "model.zip")
@@ -142,3 +144,24 @@ def test_no_expansion_when_disabled_or_bounds_are_given():
 def test_invalid_expansion_settings_name_the_key(key, value):
     with pytest.raises(ValueError, match=f"observation.{key}"):
         ObservationConfig(**{key: value})
+
+
+def test_an_expansion_covers_the_new_observations_that_triggered_it():
+    """A drift that is a small share of D (here 20 of about 3,600 transitions, under the 1%
+    quantile of D) is covered by the expansion it triggers, so the policy does not meet the box's
+    edge again at once."""
+    model = CMEPolicyIteration("CMEPolicy", Drifting(), seed=0, **SMALL)
+    model.learn(100)  # the random phase: the box is fitted on it
+    encoder = model.dynamics.obs_encoder
+    early = model.store.get(slice(0, len(model.store)))
+    for _ in range(40):  # D grows to about 3,600 transitions inside the box
+        model.store.add(early.obs, early.actions, early.rewards, early.next_obs, early.terminated)
+    far = early[:20]
+    shift = torch.tensor([1.0, 0.0]) * 3 * encoder.half_range
+    drift = Transitions(far.obs + shift, far.actions, far.rewards, far.next_obs + shift, far.terminated)
+    model.store.add(drift.obs, drift.actions, drift.rewards, drift.next_obs, drift.terminated)
+    new_states = torch.cat([drift.obs, drift.next_obs])
+    assert encoder.outside_share(new_states) == 1.0
+    model._fit_observation_box(drift)
+    assert int(encoder.expansions) == 1
+    assert encoder.outside_share(new_states) == 0.0

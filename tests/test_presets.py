@@ -31,7 +31,7 @@ OLD_OBSERVATION_FACTS = {
     "Acrobot-v1": {"angle_pairs": [[0, 1], [2, 3]]},
     "CartPole-v1": {"low": [-2.4, -3.0, -0.21, -3.5], "high": [2.4, 3.0, 0.21, 3.5]},
 }
-"""What encoding.KNOWN_OBSERVATIONS held before the facts moved into the presets."""
+"""The observation facts the library held in code before they moved into the presets."""
 
 
 def _plain(value):
