@@ -129,7 +129,7 @@ class ObservationEncoder(torch.nn.Module):
         moves whatever lives in the normalised coordinates (psi's centres, B: see
         :meth:`~cme_agent.dynamics.CMEDynamics.expand_observation_box`).
 
-        :param obs: (N, obs_dim) observations in env units, e.g. all of D
+        :param obs: (N, obs_dim) observations in env units, e.g. the states of the iteration that outgrew the box
         :return: a one-line description of the new box, for the log
         """
         if self.needs_fit or not self.fit_dims:
