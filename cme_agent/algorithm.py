@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import inspect
 import math
 import re
 import sys
@@ -84,6 +85,37 @@ def _check_spaces(observation_space: spaces.Space, action_space: spaces.Space) -
         isinstance(action_space, spaces.Discrete) or (isinstance(action_space, spaces.Box) and len(action_space.shape) == 1)
     ):
         raise ValueError(f"CMEPolicyIteration needs a Discrete or 1-D Box action space, got {action_space}")
+
+
+SET_BY_THE_AGENT = {
+    "feature_dynamics": "model_update={'feature_dynamics': ...}",
+    "reward": "reward_fn=...",
+    "evaluation": "evaluation=...",
+    "improvement": "improvement=...",
+}
+"""Arguments of :class:`CMEPolicy` that the agent passes itself, and where a user sets them."""
+
+
+def _check_policy_kwargs(policy_class: type, policy_kwargs: dict[str, Any]) -> None:
+    """Refuse, by name, a ``policy_kwargs`` key the policy does not take, saying where it
+    belongs when it is a setting of the agent (``feature_selection``, ``gamma``, ...)."""
+    parameters = inspect.signature(policy_class.__init__).parameters
+    if any(parameter.kind is inspect.Parameter.VAR_KEYWORD for parameter in parameters.values()):
+        return
+    accepted = set(parameters) - {"self", "observation_space", "action_space", "lr_schedule"} - set(SET_BY_THE_AGENT)
+    agent_arguments = set(inspect.signature(CMEPolicyIteration.__init__).parameters) - {"self", "policy", "env"}
+    for key in policy_kwargs:
+        if key in accepted:
+            continue
+        if key in SET_BY_THE_AGENT or key in agent_arguments:
+            where = SET_BY_THE_AGENT.get(key, f"{key}=...")
+            raise ValueError(
+                f"policy_kwargs['{key}'] is a setting of the agent, not of {policy_class.__name__}: "
+                f"pass {where} to CMEPolicyIteration(...) (in a Hydra config, under agent:)"
+            )
+        raise ValueError(
+            f"policy_kwargs['{key}'] is not a setting of {policy_class.__name__}: it takes {', '.join(sorted(accepted))}"
+        )
 
 
 class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
@@ -178,6 +210,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         self.exploration_config: ExplorationConfig = groups["exploration"]
         self.improvement_config: ImprovementConfig = groups["improvement"]
         self.policy_kwargs = settings.get("policy_kwargs", {})
+        _check_policy_kwargs(self.policy_class, self.policy_kwargs)
         self.learning_rate = self.model_update_config.learning_rate
         self.reward_fn = reward_fn
         self.reset_envs_each_iteration = reset_envs_each_iteration

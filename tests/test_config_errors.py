@@ -2,6 +2,7 @@
 
 import pytest
 
+from cme_agent import CMEPolicyIteration
 from cme_agent.config import (
     FeatureSelectionConfig,
     ObservationConfig,
@@ -73,3 +74,21 @@ def test_no_feature_budget_can_be_written_as_inf():
     assert FeatureSelectionConfig(max_total_features=None).max_total_features is None
     with pytest.raises(ValueError, match=r"feature_selection\.max_total_features=2\.5 is invalid"):
         FeatureSelectionConfig(max_total_features=2.5)
+
+
+@pytest.mark.parametrize(
+    "policy_kwargs, message",
+    [
+        (
+            {"feature_selection": {"bandwidths": [0.1]}},
+            r"policy_kwargs\['feature_selection'\] is a setting of the agent, not of CMEPolicy: pass feature_selection=\.\.\.",
+        ),
+        ({"gamma": 0.9}, r"policy_kwargs\['gamma'\] is a setting of the agent.*pass gamma=\.\.\."),
+        ({"feature_dynamics": False}, r"pass model_update=\{'feature_dynamics': \.\.\.\}"),
+        ({"evaluation": {"l2": 1e-3}}, r"policy_kwargs\[.evaluation.\] is a setting of the agent.*pass evaluation=\.\.\."),
+        ({"net_arch": [64, 64]}, r"policy_kwargs\['net_arch'\] is not a setting of CMEPolicy: it takes action_search, .*phi"),
+    ],
+)
+def test_a_policy_kwargs_key_the_policy_does_not_take_is_named(policy_kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        CMEPolicyIteration("CMEPolicy", "Pendulum-v1", policy_kwargs=policy_kwargs)
