@@ -18,6 +18,8 @@ from the records.
     python benchmarks/learning_quality.py --stem learning_quality_soft --overrides agent.improvement.method=soft
     python benchmarks/learning_quality.py --envs --env-id InvertedPendulum-v5 --steps 5000 --target 950 \
         --kwargs '{"gamma": 0.95}' --stem lq_inverted_pendulum
+    python benchmarks/learning_quality.py --envs --env-id InvertedPendulumKnownReward-v5 --steps 5000 --target 950 \
+        --stem probe_ip_known_reward      # the exact reward given (benchmarks/known_reward_envs.py)
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
+import known_reward_envs  # noqa: F401  (registers the suite's envs with their exact reward under new ids)
 import torch
 from common import RESULTS, command_line, compose_config, markdown_table, plot_learning_curves, save_record, write_report
 from stable_baselines3.common.evaluation import evaluate_policy
