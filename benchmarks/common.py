@@ -28,7 +28,8 @@ def compose_config(overrides: list[str]) -> DictConfig:
 def command_line() -> str:
     """The command that is running, as a user would type it from the repository root, and the
     commit of the code it ran (with ``+changes`` if the work tree differed from it)."""
-    script = Path(sys.argv[0]).resolve().relative_to(ROOT)
+    script = Path(sys.argv[0]).resolve()
+    script = script.relative_to(ROOT) if script.is_relative_to(ROOT) else script  # e.g. pytest's entry point
     command = " ".join(["python", str(script), *(shlex.quote(a) for a in sys.argv[1:])])
     return f"{command}` at commit `{code_version()}"
 

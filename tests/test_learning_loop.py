@@ -33,7 +33,10 @@ def test_known_rewards_match_the_env(env_id):
     """The shipped r(s, a) + terminal bonus * [s' terminal] equals the env's reward, and
     is_terminal(s') equals its termination flag, on random rollouts."""
     spec = KNOWN_REWARDS[env_id]
-    env = gym.make(env_id)
+    try:
+        env = gym.make(env_id)
+    except gym.error.DependencyNotInstalled as missing:  # e.g. a MuJoCo id registered by benchmarks/
+        pytest.skip(str(missing))
     obs, _ = env.reset(seed=0)
     env.action_space.seed(0)
     for _ in range(300):
