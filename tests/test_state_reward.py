@@ -100,7 +100,7 @@ def test_agent_fits_it_each_iteration_and_it_survives_save_load(tmp_path: Path):
     from gymnasium.envs.classic_control import PendulumEnv
 
     env = gym.wrappers.TimeLimit(PendulumEnv(), 200)  # no id: the reward is learned
-    agent = CMEPolicyIteration("CMEPolicy", env, seed=0, steps_per_iteration=100)
+    agent = CMEPolicyIteration("CMEPolicy", env, seed=0, steps_per_iteration=100, model_update={"state_reward": True})
     assert agent.reward_source == "learned" and agent.dynamics.fits_state_reward
     agent.learn(300)
     assert int(agent.dynamics.state_reward_rows) == len(agent.store) and float(agent.dynamics.state_reward.abs().sum()) > 0
