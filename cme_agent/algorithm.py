@@ -247,6 +247,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             self.observation_space,
             self.action_space,
             feature_dynamics=self.model_update_config.feature_dynamics,
+            state_reward=self.model_update_config.state_reward,
             reward=reward,
             evaluation=self.evaluation_config,
             improvement=self.improvement_config,
@@ -366,6 +367,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         """
         self.iteration += 1
         self._fit_observation_box(new_data)
+        self.state_reward_regression()
         self.feature_selection(new_data)
         self.model_update()
         for _ in range(self.evaluation_config.rounds):
@@ -400,6 +402,19 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         self.policy.restart()
         self._value_weights = None
         self.logger.record("train/observation_box_expansions", int(encoder.expansions))
+
+    def state_reward_regression(self) -> None:
+        """With a learned reward, its state part ``<c, phi(s)>``: ridge regression on all of D,
+        its normal equations updated with the transitions not yet in them (all of D after the
+        box changed); the learned row of B then fits the rest (``model_update.state_reward``)."""
+        dynamics = self.dynamics
+        if not dynamics.fits_state_reward:
+            return
+        with self._timed("state_reward"):
+            start = 0 if dynamics.state_reward_restarts() else int(dynamics.state_reward_rows)
+            dynamics.update_state_reward(
+                self.store.get(slice(start, len(self.store))), self.model_update_config.state_reward_l2
+            )
 
     def _observed_states(self) -> torch.Tensor:
         """(2 |D|, obs_dim): every state and successor of D and of the held-out transitions."""

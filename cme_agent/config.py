@@ -145,6 +145,10 @@ class ModelUpdateConfig:
         which ``train/model_loss`` is measured
     :param holdout_size: held-out transitions sampled per iteration to measure the loss
     :param feature_dynamics: regress phi(s') - phi(s) (section 2.3) instead of phi(s')
+    :param state_reward: when the reward is learned, fit its state part ``<c, phi(s)>`` by ridge
+        regression on all of D and learn only the rest on psi (where psi's kernels fade, off the
+        data, the reward then follows phi's global fit instead of falling to 0)
+    :param state_reward_l2: ridge of that fit, relative to the mean diagonal of its normal equations
     """
 
     n_steps: int = 200
@@ -154,6 +158,8 @@ class ModelUpdateConfig:
     holdout_fraction: float = 0.1
     holdout_size: int = 1000
     feature_dynamics: bool = True
+    state_reward: bool = True
+    state_reward_l2: float = 1e-3
 
     def __post_init__(self) -> None:
         check_positive_int("model_update.n_steps", self.n_steps)
@@ -167,6 +173,7 @@ class ModelUpdateConfig:
         check_non_negative("model_update.l2", self.l2)
         check_unit_interval("model_update.holdout_fraction", self.holdout_fraction, open_high=True)
         check_positive_int("model_update.holdout_size", self.holdout_size)
+        check_positive("model_update.state_reward_l2", self.state_reward_l2)
 
 
 MIN_COLLECTION_SIZE = 2000

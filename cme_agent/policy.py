@@ -103,6 +103,7 @@ class CMEPolicy(BasePolicy):
     :param candidate_seed: seed of the sampled action candidates (Box actions, high dims)
     :param feature_dynamics: the model regresses phi~(s') - phi(s) (section 2.3)
     :param reward: the known reward; None: the model learns it
+    :param state_reward: a learned reward's state part is fit on phi (``model_update.state_reward``)
     :param evaluation: the evaluation settings, for the memory check of phi (None: defaults)
     :param improvement: the improvement step (:class:`ImprovementConfig` or dict; None: the
         paper's smoothed greedy step)
@@ -121,6 +122,7 @@ class CMEPolicy(BasePolicy):
         reward: RewardSpec | None = None,
         evaluation: EvaluationConfig | None = None,
         improvement: ImprovementConfig | dict[str, Any] | None = None,
+        state_reward: bool = False,
     ) -> None:
         super().__init__(observation_space, action_space, squash_output=False)
         self.phi_spec = phi
@@ -134,7 +136,7 @@ class CMEPolicy(BasePolicy):
         self.candidate_seed = candidate_seed
         self.observation_config = build_config(ObservationConfig, observation, "observation")
         self.dynamics = CMEDynamics(
-            observation_space, action_space, phi, self.observation_config, feature_dynamics, reward, evaluation
+            observation_space, action_space, phi, self.observation_config, feature_dynamics, reward, evaluation, state_reward
         )
         self.register_buffer("theta_phi", torch.zeros(self.dynamics.p))
         self.register_buffer("theta_psi", torch.zeros(0))
@@ -175,6 +177,7 @@ class CMEPolicy(BasePolicy):
             candidate_seed=self.candidate_seed,
             feature_dynamics=self.dynamics.feature_dynamics,
             improvement=self.improvement,
+            state_reward=self.dynamics.fits_state_reward,
         )
         return data
 

@@ -13,13 +13,16 @@ Regression target of a transition: the continuation-weighted successor feature
 ``phi~(s') = (1 - terminated) phi(s')`` (terminal states are absorbing with phi = 0), minus
 ``phi(s)`` in the feature-dynamics form of section 2.3. Since phi ends with a constant 1, the
 model's last phi row predicts the continuation probability; when the reward is learned, one
-more row regresses ``r / reward_scale`` on psi.
+more row regresses ``r / reward_scale`` on psi: the whole reward, or with ``state_reward``
+what is left of it after its state part ``<c, phi(s)>``, fit by ridge regression on all of D
+(:meth:`CMEDynamics.update_state_reward`).
 
 Shapes: N a batch, p = width of phi, q = width of psi, p_out = p (+ 1 with a learned reward).
 """
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -46,6 +49,9 @@ preset: p = 2,836) the targets of all 200 minibatches would take about 300 MB, t
 REFIT_ROWS = 4096
 """Rows of psi built at once by :meth:`CMEDynamics.refit_weights` (32 MiB of float32 at q = 2,000)."""
 
+MAX_STATE_REWARD_WIDTH = 4096
+"""Widest phi whose state reward is fit: its normal equations are a p^2 float64 matrix (128 MiB here)."""
+
 
 def _zero_reward(obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
     return torch.zeros(obs.shape[0], dtype=obs.dtype, device=obs.device)
@@ -62,6 +68,8 @@ class CMEDynamics(nn.Module):
     :param feature_dynamics: regress phi~(s') - phi(s) (section 2.3) instead of phi~(s')
     :param reward: the known reward; None: learn it by regression on psi (one more row of B)
     :param evaluation: the evaluation settings, for the memory check of phi (None: defaults)
+    :param state_reward: with a learned reward, fit its state part ``<c, phi(s)>`` by ridge
+        regression on all of D (:meth:`update_state_reward`) and leave psi's row the rest
     """
 
     def __init__(
@@ -73,6 +81,7 @@ class CMEDynamics(nn.Module):
         feature_dynamics: bool = True,
         reward: RewardSpec | None = None,
         evaluation: EvaluationConfig | None = None,
+        state_reward: bool = False,
     ) -> None:
         super().__init__()
         self.obs_encoder = ObservationEncoder(observation_space, build_config(ObservationConfig, observation, "observation"))
@@ -85,6 +94,21 @@ class CMEDynamics(nn.Module):
         self.reward = reward if reward is not None else RewardSpec(_zero_reward)
         self.register_buffer("weights", torch.zeros(self.p + int(self.learn_reward), 0))
         self.register_buffer("reward_scale", torch.ones(()))
+        self.fits_state_reward = state_reward and self.learn_reward and self.p <= MAX_STATE_REWARD_WIDTH
+        if state_reward and self.learn_reward and not self.fits_state_reward:
+            warnings.warn(
+                f"model_update.state_reward is off: phi is {self.p:,} features wide, its normal equations would take "
+                f"{8 * self.p**2 / 2**30:.1f} GiB (at most {MAX_STATE_REWARD_WIDTH:,} features); "
+                "psi's row learns the whole reward",
+                UserWarning,
+                stacklevel=2,
+            )
+        if self.fits_state_reward:
+            self.register_buffer("state_reward", torch.zeros(self.p))
+            self.register_buffer("state_reward_gram", torch.zeros(self.p, self.p, dtype=torch.float64))
+            self.register_buffer("state_reward_moments", torch.zeros(self.p, dtype=torch.float64))
+            self.register_buffer("state_reward_rows", torch.zeros((), dtype=torch.long))
+            self.register_buffer("state_reward_box", torch.zeros(2, self.obs_encoder.center.numel()))
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -124,7 +148,8 @@ class CMEDynamics(nn.Module):
         continuation = (~batch.terminated).to(batch.next_obs)
         target = self.phi.successor_targets(batch.next_obs, continuation, batch.obs if self.feature_dynamics else None)
         if self.learn_reward:
-            target = torch.cat([target, (batch.rewards / self.reward_scale).unsqueeze(1)], dim=1)
+            rewards = batch.rewards - self.phi(batch.obs) @ self.state_reward if self.fits_state_reward else batch.rewards
+            target = torch.cat([target, (rewards / self.reward_scale).unsqueeze(1)], dim=1)
         return target
 
     def regression_data(self, batch: Transitions) -> tuple[torch.Tensor, torch.Tensor]:
@@ -135,6 +160,40 @@ class CMEDynamics(nn.Module):
         """Before the first feature, scale the learned reward row to unit spread: :param rewards: (N,)."""
         if self.learn_reward and self.q == 0:
             self.reward_scale.fill_(float(rewards.std().clamp_min(1e-3)))
+
+    def update_state_reward(self, new_data: Transitions, l2: float) -> int:
+        """The state part of the learned reward, ``c = argmin_c sum_D (r - <c, phi(s)>)^2 + lambda |c|^2``
+        (lambda = ``l2`` times the mean diagonal of the normal equations), from normal equations
+        accumulated as D grows: O(p^2) per new transition and one p x p solve, whatever |D|.
+        phi is a global basis, so between and beyond the visited states the fit holds where
+        psi's kernels fade to 0 (and the learned row alone would predict reward 0). A changed
+        observation box changes phi: the equations then restart from all of D.
+
+        :param new_data: D from row :attr:`state_reward_rows` on, or all of D after the box changed
+            (:meth:`state_reward_restarts`)
+        :param l2: relative ridge
+        :return: rows of D in the equations
+        """
+        if self.state_reward_restarts():
+            self.state_reward_gram.zero_()
+            self.state_reward_moments.zero_()
+            self.state_reward_rows.zero_()
+            self.state_reward_box.copy_(torch.stack([self.obs_encoder.center, self.obs_encoder.half_range]))
+        for start in range(0, len(new_data), REFIT_ROWS):
+            rows = new_data[start : start + REFIT_ROWS]
+            phi = self.phi(rows.obs).double()
+            self.state_reward_gram += phi.T @ phi
+            self.state_reward_moments += phi.T @ rows.rewards.double()
+        self.state_reward_rows += len(new_data)
+        gram = self.state_reward_gram.clone()
+        gram.diagonal().add_(l2 * float(gram.diagonal().mean()) + 1e-12)
+        self.state_reward.copy_(torch.linalg.solve(gram, self.state_reward_moments))
+        return int(self.state_reward_rows)
+
+    def state_reward_restarts(self) -> bool:
+        """True when phi changed since the state reward's equations were accumulated (a new box)."""
+        box = torch.stack([self.obs_encoder.center, self.obs_encoder.half_range])
+        return int(self.state_reward_rows) == 0 or not torch.equal(box, self.state_reward_box)
 
     # ------------------------------------------------------------------ loss and updates
     def predict(self, psi: torch.Tensor) -> torch.Tensor:
@@ -229,6 +288,10 @@ class CMEDynamics(nn.Module):
 
     def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
         resize_buffers(self, state_dict, prefix, {"weights": 1})
+        if self.fits_state_reward and prefix + "state_reward" not in state_dict:  # saved before the state reward: c = 0
+            for name, buffer in self.named_buffers(recurse=False):
+                if name.startswith("state_reward"):
+                    state_dict[prefix + name] = torch.zeros_like(buffer)  # rows 0: the next update starts from all of D
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     # ------------------------------------------------------------------ what planning reads
@@ -258,7 +321,8 @@ class CMEDynamics(nn.Module):
         """The model's linear part of the expected reward,
         ``r(s, a) = step_reward(s, a) + <c_phi, phi(s)> + <c_psi, psi(s, a)>``:
         the terminal bonus times P_model(terminate | s, a) (read off the constant row of phi:
-        E[1 - done] = 1 + B_const psi with feature dynamics), plus the learned reward row.
+        E[1 - done] = 1 + B_const psi with feature dynamics), plus the learned reward row and,
+        with ``state_reward``, the learned reward's state part on phi.
 
         :return: c_phi (p,) and c_psi (q,)
         """
@@ -271,6 +335,8 @@ class CMEDynamics(nn.Module):
                 c_phi[-1] += bonus
         if self.learn_reward:
             c_psi += self.weights[-1] * self.reward_scale
+        if self.fits_state_reward:
+            c_phi += self.state_reward
         return c_phi, c_psi
 
     def expected_reward(self, obs: torch.Tensor, actions: torch.Tensor, phi: torch.Tensor, psi: torch.Tensor) -> torch.Tensor:
