@@ -158,7 +158,7 @@ class ModelUpdateConfig:
     holdout_fraction: float = 0.1
     holdout_size: int = 1000
     feature_dynamics: bool = True
-    state_reward: bool = True
+    state_reward: bool = False
     state_reward_l2: float = 1e-3
 
     def __post_init__(self) -> None:
