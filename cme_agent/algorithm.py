@@ -248,6 +248,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             self.action_space,
             feature_dynamics=self.model_update_config.feature_dynamics,
             state_reward=self.model_update_config.state_reward,
+            off_data_reward=self.model_update_config.off_data_reward,
             reward=reward,
             evaluation=self.evaluation_config,
             improvement=self.improvement_config,
@@ -531,7 +532,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             if len(new_data) == 0 or budget <= 0:
                 return self._record_features_added(0)
             batch = new_data.concat(self.store.sample(config.subsample_size, self._torch_rng))
-            dynamics.calibrate_reward_scale(batch.rewards)
+            dynamics.calibrate_reward_row(batch.rewards)
             z = dynamics.encode(batch.obs, batch.actions)
             residual = dynamics.targets(batch) - dynamics.predict(dynamics.psi(z))
             centres = z[: len(new_data)]

@@ -132,6 +132,10 @@ class FeatureSelectionConfig:
         check_unit_interval("feature_selection.theta", self.theta, open_low=True)
 
 
+OFF_DATA_REWARDS = ("least", "zero")
+"""What a learned reward row predicts off the data (``model_update.off_data_reward``)."""
+
+
 @dataclass(frozen=True)
 class ModelUpdateConfig:
     """Stochastic gradient descent on the regularised model loss (paper eq. (6)).
@@ -149,6 +153,10 @@ class ModelUpdateConfig:
         regression on all of D and learn only the rest on psi (where psi's kernels fade, off the
         data, the reward then follows phi's global fit instead of falling to 0)
     :param state_reward_l2: ridge of that fit, relative to the mean diagonal of its normal equations
+    :param off_data_reward: what a learned reward predicts off the data, where psi's kernels
+        fade (without ``state_reward``): ``"least"``, the least reward of the first
+        feature-selection batch (pessimism that leaves alive-bonus rewards, whose least is a
+        fall's 0, as they were), or ``"zero"`` (the row regresses the reward itself)
     """
 
     n_steps: int = 200
@@ -160,6 +168,7 @@ class ModelUpdateConfig:
     feature_dynamics: bool = True
     state_reward: bool = False
     state_reward_l2: float = 1e-3
+    off_data_reward: str = "least"
 
     def __post_init__(self) -> None:
         check_positive_int("model_update.n_steps", self.n_steps)
@@ -174,6 +183,7 @@ class ModelUpdateConfig:
         check_unit_interval("model_update.holdout_fraction", self.holdout_fraction, open_high=True)
         check_positive_int("model_update.holdout_size", self.holdout_size)
         check_positive("model_update.state_reward_l2", self.state_reward_l2)
+        check_choice("model_update.off_data_reward", self.off_data_reward, OFF_DATA_REWARDS)
 
 
 MIN_COLLECTION_SIZE = 2000

@@ -104,6 +104,7 @@ class CMEPolicy(BasePolicy):
     :param feature_dynamics: the model regresses phi~(s') - phi(s) (section 2.3)
     :param reward: the known reward; None: the model learns it
     :param state_reward: a learned reward's state part is fit on phi (``model_update.state_reward``)
+    :param off_data_reward: what a learned reward predicts off the data (``model_update.off_data_reward``)
     :param evaluation: the evaluation settings, for the memory check of phi (None: defaults)
     :param improvement: the improvement step (:class:`ImprovementConfig` or dict; None: the
         paper's smoothed greedy step)
@@ -123,6 +124,7 @@ class CMEPolicy(BasePolicy):
         evaluation: EvaluationConfig | None = None,
         improvement: ImprovementConfig | dict[str, Any] | None = None,
         state_reward: bool = False,
+        off_data_reward: str = "least",
     ) -> None:
         super().__init__(observation_space, action_space, squash_output=False)
         self.phi_spec = phi
@@ -136,7 +138,15 @@ class CMEPolicy(BasePolicy):
         self.candidate_seed = candidate_seed
         self.observation_config = build_config(ObservationConfig, observation, "observation")
         self.dynamics = CMEDynamics(
-            observation_space, action_space, phi, self.observation_config, feature_dynamics, reward, evaluation, state_reward
+            observation_space,
+            action_space,
+            phi,
+            self.observation_config,
+            feature_dynamics,
+            reward,
+            evaluation,
+            state_reward,
+            off_data_reward,
         )
         self.register_buffer("theta_phi", torch.zeros(self.dynamics.p))
         self.register_buffer("theta_psi", torch.zeros(0))
@@ -178,6 +188,7 @@ class CMEPolicy(BasePolicy):
             feature_dynamics=self.dynamics.feature_dynamics,
             improvement=self.improvement,
             state_reward=self.dynamics.fits_state_reward,
+            off_data_reward=self.dynamics.off_data_reward,
         )
         return data
 

@@ -13,8 +13,10 @@ Regression target of a transition: the continuation-weighted successor feature
 ``phi~(s') = (1 - terminated) phi(s')`` (terminal states are absorbing with phi = 0), minus
 ``phi(s)`` in the feature-dynamics form of section 2.3. Since phi ends with a constant 1, the
 model's last phi row predicts the continuation probability; when the reward is learned, one
-more row regresses ``r / reward_scale`` on psi: the whole reward, or with ``state_reward``
-what is left of it after its state part ``<c, phi(s)>``, fit by ridge regression on all of D
+more row regresses ``(r - reward_offset) / reward_scale`` on psi: the whole reward less its
+least value in the first batch (``off_data_reward="least"``: where psi's kernels fade, off the
+data, the model predicts that least reward, not 0), or with ``state_reward`` what is left of
+it after its state part ``<c, phi(s)>``, fit by ridge regression on all of D
 (:meth:`CMEDynamics.update_state_reward`).
 
 Shapes: N a batch, p = width of phi, q = width of psi, p_out = p (+ 1 with a learned reward).
@@ -31,7 +33,7 @@ from gymnasium import spaces
 from torch import nn
 
 from cme_agent.buffer import Transitions
-from cme_agent.config import EvaluationConfig, ObservationConfig, StateFeatureConfig, build_config
+from cme_agent.config import OFF_DATA_REWARDS, EvaluationConfig, ObservationConfig, StateFeatureConfig, build_config
 from cme_agent.dynamics.sgd import sgd_step
 from cme_agent.encoding import ActionEncoder, ObservationEncoder
 from cme_agent.kernel_bank import KernelBank, gaussian_kernel, kernel_from_points, kernel_points, resize_buffers
@@ -70,6 +72,8 @@ class CMEDynamics(nn.Module):
     :param evaluation: the evaluation settings, for the memory check of phi (None: defaults)
     :param state_reward: with a learned reward, fit its state part ``<c, phi(s)>`` by ridge
         regression on all of D (:meth:`update_state_reward`) and leave psi's row the rest
+    :param off_data_reward: what a learned reward predicts off the data, where psi fades
+        (without ``state_reward``): ``"least"``, the least reward of the first batch, or ``"zero"``
     """
 
     def __init__(
@@ -82,8 +86,11 @@ class CMEDynamics(nn.Module):
         reward: RewardSpec | None = None,
         evaluation: EvaluationConfig | None = None,
         state_reward: bool = False,
+        off_data_reward: str = "least",
     ) -> None:
         super().__init__()
+        if off_data_reward not in OFF_DATA_REWARDS:
+            raise ValueError(f"off_data_reward={off_data_reward!r} is invalid: must be one of {OFF_DATA_REWARDS}")
         self.obs_encoder = ObservationEncoder(observation_space, build_config(ObservationConfig, observation, "observation"))
         self.action_encoder = ActionEncoder(action_space)
         phi_config = phi if callable(phi) else build_config(StateFeatureConfig, phi, "phi")
@@ -94,7 +101,9 @@ class CMEDynamics(nn.Module):
         self.reward = reward if reward is not None else RewardSpec(_zero_reward)
         self.register_buffer("weights", torch.zeros(self.p + int(self.learn_reward), 0))
         self.register_buffer("reward_scale", torch.ones(()))
+        self.register_buffer("reward_offset", torch.zeros(()))
         self.fits_state_reward = state_reward and self.learn_reward and self.p <= MAX_STATE_REWARD_WIDTH
+        self.off_data_reward = "zero" if self.fits_state_reward else off_data_reward
         if state_reward and self.learn_reward and not self.fits_state_reward:
             warnings.warn(
                 f"model_update.state_reward is off: phi is {self.p:,} features wide, its normal equations would take "
@@ -144,11 +153,14 @@ class CMEDynamics(nn.Module):
         return self.psi.action_factor(self.action_encoder.encode(actions))
 
     def targets(self, batch: Transitions) -> torch.Tensor:
-        """Regression targets y of a batch: (N, p_out), phi~(s') (- phi(s)) (and r / reward_scale)."""
+        """Regression targets y of a batch: (N, p_out), phi~(s') (- phi(s)) (and the reward row's
+        ``(r - reward_offset - <c, phi(s)>) / reward_scale``, c = 0 without ``state_reward``)."""
         continuation = (~batch.terminated).to(batch.next_obs)
         target = self.phi.successor_targets(batch.next_obs, continuation, batch.obs if self.feature_dynamics else None)
         if self.learn_reward:
-            rewards = batch.rewards - self.phi(batch.obs) @ self.state_reward if self.fits_state_reward else batch.rewards
+            rewards = batch.rewards - self.reward_offset
+            if self.fits_state_reward:  # phi(s) again: successor_targets subtracts it fused, without an (N, p) copy
+                rewards = rewards - self.phi(batch.obs) @ self.state_reward
             target = torch.cat([target, (rewards / self.reward_scale).unsqueeze(1)], dim=1)
         return target
 
@@ -156,10 +168,17 @@ class CMEDynamics(nn.Module):
         """Inputs psi (N, q) and targets y (N, p_out) of a batch."""
         return self.features(batch.obs, batch.actions), self.targets(batch)
 
-    def calibrate_reward_scale(self, rewards: torch.Tensor) -> None:
-        """Before the first feature, scale the learned reward row to unit spread: :param rewards: (N,)."""
+    def calibrate_reward_row(self, rewards: torch.Tensor) -> None:
+        """Before the first feature, scale the learned reward row to unit spread and, with
+        ``off_data_reward="least"``, shift it by the batch's least reward (what the model then
+        predicts off the data). Both stay fixed: B's row is learned in their units.
+
+        :param rewards: (N,) the first feature-selection batch's rewards
+        """
         if self.learn_reward and self.q == 0:
             self.reward_scale.fill_(float(rewards.std().clamp_min(1e-3)))
+            if self.off_data_reward == "least":
+                self.reward_offset.fill_(float(rewards.min()))
 
     def update_state_reward(self, new_data: Transitions, l2: float) -> int:
         """The state part of the learned reward, ``c = argmin_c sum_D (r - <c, phi(s)>)^2 + lambda |c|^2``
@@ -288,6 +307,8 @@ class CMEDynamics(nn.Module):
 
     def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
         resize_buffers(self, state_dict, prefix, {"weights": 1})
+        if prefix + "reward_offset" not in state_dict:  # saved before the offset: the row learned r itself
+            state_dict[prefix + "reward_offset"] = torch.zeros_like(self.reward_offset)
         if self.fits_state_reward and prefix + "state_reward" not in state_dict:  # saved before the state reward: c = 0
             for name, buffer in self.named_buffers(recurse=False):
                 if name.startswith("state_reward"):
@@ -321,8 +342,8 @@ class CMEDynamics(nn.Module):
         """The model's linear part of the expected reward,
         ``r(s, a) = step_reward(s, a) + <c_phi, phi(s)> + <c_psi, psi(s, a)>``:
         the terminal bonus times P_model(terminate | s, a) (read off the constant row of phi:
-        E[1 - done] = 1 + B_const psi with feature dynamics), plus the learned reward row and,
-        with ``state_reward``, the learned reward's state part on phi.
+        E[1 - done] = 1 + B_const psi with feature dynamics), plus the learned reward row, its
+        offset on phi's constant and, with ``state_reward``, the learned reward's state part on phi.
 
         :return: c_phi (p,) and c_psi (q,)
         """
@@ -335,6 +356,7 @@ class CMEDynamics(nn.Module):
                 c_phi[-1] += bonus
         if self.learn_reward:
             c_psi += self.weights[-1] * self.reward_scale
+            c_phi[-1] += self.reward_offset
         if self.fits_state_reward:
             c_phi += self.state_reward
         return c_phi, c_psi
