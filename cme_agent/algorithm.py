@@ -381,8 +381,9 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         phase). Later, when more than ``observation.expand_outside`` of an iteration's new
         observations fall outside it, the box is expanded to cover those new observations (at
         most ``observation.max_expansions`` times): psi's centres keep their place, B is refit on
-        a sample of D and planning restarts (Q's weights belonged to the old phi). The new
-        observations, not all of D, set the expansion: the quantiles of D would leave out a
+        a sample of D (after the state reward, with ``state_reward``, on all of D) and planning
+        restarts (Q's weights belonged to the old phi). The new observations, not all of D, set
+        the expansion: the quantiles of D would leave out a
         drift that is a small share of D (a cart pushed off centre for the first time), and the
         policy would meet the box's edge again at once.
 
@@ -399,7 +400,9 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         if encoder.outside_share(new_states) <= config.expand_outside:
             return
         sample = self.store.sample(min(len(self.store), EXPANSION_REFIT_SIZE), self._torch_rng)
-        self.logger.info(self.dynamics.expand_observation_box(new_states, sample, self.model_update_config.l2))
+        config = self.model_update_config
+        data = self.store.get(slice(0, len(self.store))) if self.dynamics.fits_state_reward else None
+        self.logger.info(self.dynamics.expand_observation_box(new_states, sample, config.l2, data, config.state_reward_l2))
         self.policy.restart()
         self._value_weights = None
         self.logger.record("train/observation_box_expansions", int(encoder.expansions))

@@ -121,3 +121,32 @@ def test_a_model_saved_before_the_state_reward_loads_with_c_zero():
     new.load_state_dict(old.state_dict())
     assert float(new.state_reward.abs().sum()) == 0.0 and new.state_reward_restarts()
     assert float(new.reward_scale) == float(old.reward_scale)
+
+
+def test_an_expansion_fits_the_state_reward_again_before_b_is_refit():
+    space = spaces.Box(np.full(2, -np.inf, np.float32), np.full(2, np.inf, np.float32), dtype=np.float32)
+
+    def model() -> CMEDynamics:
+        dynamics = CMEDynamics(space, ACTION_SPACE, {"kind": "fourier", "max_width": 201}, state_reward=True)
+        dynamics.obs_encoder.fit(first.obs)
+        dynamics.update_state_reward(first, 1e-3)
+        z = dynamics.encode(first.obs[:100], first.actions[:100])
+        dynamics.grow(z, torch.full((100,), 0.3), torch.zeros(dynamics.p + 1, 100))
+        return dynamics
+
+    first, wide = _transitions(1000, 0), _transitions(1000, 1, -3.0, 3.0)
+    both = first.concat(wide)
+    states = torch.cat([wide.obs, wide.next_obs])
+    expanded = model()
+    expanded.expand_observation_box(states, both, 1e-6, both, 1e-3)
+    assert not expanded.state_reward_restarts()  # fit in the new box, on all of D
+    stale = model()
+    stale.expand_observation_box(states, both, 1e-6)  # without D: B refit against the old box's c
+    stale.update_state_reward(both, 1e-3)
+    torch.testing.assert_close(stale.state_reward, expanded.state_reward)
+    refit = model()
+    refit.expand_observation_box(states, both, 1e-6)
+    refit.update_state_reward(both, 1e-3)
+    refit.refit_weights(both, 1e-6)  # B against the new c: what the expansion with D gives at once
+    torch.testing.assert_close(expanded.weights, refit.weights, rtol=1e-4, atol=1e-4)
+    assert float((stale.weights[-1] - expanded.weights[-1]).abs().max()) > 1e-2  # the stale c shows in B's row

@@ -264,21 +264,35 @@ class CMEDynamics(nn.Module):
         gram.diagonal().add_(len(batch) * l2 + 1e-6 * float(gram.diagonal().mean().clamp_min(1e-12)))
         self.weights = torch.linalg.solve(gram, cross).T.to(self.weights)
 
-    def expand_observation_box(self, obs: torch.Tensor, batch: Transitions, l2: float) -> str:
+    def expand_observation_box(
+        self,
+        obs: torch.Tensor,
+        batch: Transitions,
+        l2: float,
+        data: Transitions | None = None,
+        state_reward_l2: float = 1e-3,
+    ) -> str:
         """Widen the estimated observation box to cover ``obs`` (:meth:`ObservationEncoder.expand`)
         and carry the model into the new coordinates: psi's centres keep their env-unit
-        positions (:meth:`KernelBank.move_states`), phi follows the box by construction, and B,
-        whose targets phi changed, is refit on ``batch`` (:meth:`refit_weights`).
+        positions (:meth:`KernelBank.move_states`), phi follows the box by construction, the
+        state reward (with ``state_reward``) is fit again on all of D in the new phi, and then
+        B, whose targets phi changed, is refit on ``batch`` (:meth:`refit_weights`).
 
         :param obs: (N, obs_dim) observations the box must cover, env units
         :param batch: transitions B is refit on
         :param l2: ridge coefficient of the refit
+        :param data: all of D, to fit the state reward again before B is refit (with
+            ``state_reward``; None leaves the old fit in B's targets until the next
+            :meth:`update_state_reward`)
+        :param state_reward_l2: relative ridge of the state reward
         :return: the encoder's log line
         """
         encoder = self.obs_encoder
         center, half_range = encoder.center.clone(), encoder.half_range.clone()
         message = encoder.expand(obs)
         self.psi.move_states(half_range / encoder.half_range, (center - encoder.center) / encoder.half_range)
+        if self.fits_state_reward and data is not None:
+            self.update_state_reward(data, state_reward_l2)  # the box changed: restarts from all of D
         if self.q > 0:
             self.refit_weights(batch, l2)
         return message
