@@ -535,7 +535,8 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             if len(new_data) == 0 or budget <= 0:
                 return self._record_features_added(0)
             batch = new_data.concat(self.store.sample(config.subsample_size, self._torch_rng))
-            dynamics.calibrate_reward_row(batch.rewards)
+            if (message := dynamics.calibrate_reward_row(batch.rewards)) is not None:
+                self.logger.info(message)
             z = dynamics.encode(batch.obs, batch.actions)
             residual = dynamics.targets(batch) - dynamics.predict(dynamics.psi(z))
             centres = z[: len(new_data)]

@@ -80,15 +80,18 @@ def test_an_unknown_choice_is_refused():
         CMEDynamics(OBS_SPACE, ACTION_SPACE, off_data_reward="mean")
 
 
-def test_the_agent_sets_it_from_its_first_batch_and_it_survives_save_load(tmp_path: Path):
+def test_the_agent_sets_it_from_its_first_batch_says_so_and_it_survives_save_load(tmp_path: Path, capsys):
     from gymnasium.envs.classic_control import PendulumEnv
 
     env = gym.wrappers.TimeLimit(PendulumEnv(), 200)  # no id: the reward is learned, every reward <= 0
-    agent = CMEPolicyIteration("CMEPolicy", env, seed=0, steps_per_iteration=100)
+    agent = CMEPolicyIteration("CMEPolicy", env, seed=0, steps_per_iteration=100, verbose=1)
     assert agent.reward_source == "learned" and agent.dynamics.off_data_reward == "least"
     agent.learn(300)
     offset = float(agent.dynamics.reward_offset)
     assert offset < -1.0 and offset >= float(agent.store.get(slice(0, len(agent.store))).rewards.min())
+    said = capsys.readouterr().out
+    assert f"off the data the model predicts {offset:.4g} (model_update.off_data_reward='least')" in said
+    assert said.count("Learned reward:") == 1  # once, before the first feature
     agent.save(tmp_path / "agent")
     loaded = CMEPolicyIteration.load(tmp_path / "agent", env=env)
     assert float(loaded.dynamics.reward_offset) == offset

@@ -168,17 +168,28 @@ class CMEDynamics(nn.Module):
         """Inputs psi (N, q) and targets y (N, p_out) of a batch."""
         return self.features(batch.obs, batch.actions), self.targets(batch)
 
-    def calibrate_reward_row(self, rewards: torch.Tensor) -> None:
+    def calibrate_reward_row(self, rewards: torch.Tensor) -> str | None:
         """Before the first feature, scale the learned reward row to unit spread and, with
         ``off_data_reward="least"``, shift it by the batch's least reward (what the model then
         predicts off the data). Both stay fixed: B's row is learned in their units.
 
         :param rewards: (N,) the first feature-selection batch's rewards
+        :return: a log line when it calibrated (a learned reward and q = 0), else None
         """
-        if self.learn_reward and self.q == 0:
-            self.reward_scale.fill_(float(rewards.std().clamp_min(1e-3)))
-            if self.off_data_reward == "least":
-                self.reward_offset.fill_(float(rewards.min()))
+        if not self.learn_reward or self.q > 0:
+            return None
+        self.reward_scale.fill_(float(rewards.std().clamp_min(1e-3)))
+        if self.off_data_reward == "least":
+            self.reward_offset.fill_(float(rewards.min()))
+        off_data = (
+            "its state part's fit on phi (model_update.state_reward)"
+            if self.fits_state_reward
+            else f"{float(self.reward_offset):.4g} (model_update.off_data_reward={self.off_data_reward!r})"
+        )
+        return (
+            f"Learned reward: {float(rewards.min()):.4g} to {float(rewards.max()):.4g} in the first batch; "
+            f"off the data the model predicts {off_data}."
+        )
 
     def update_state_reward(self, new_data: Transitions, l2: float) -> int:
         """The state part of the learned reward, ``c = argmin_c sum_D (r - <c, phi(s)>)^2 + lambda |c|^2``
