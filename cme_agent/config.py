@@ -384,6 +384,9 @@ class ActionSearchConfig:
 
     :param grid_size: candidates per action dimension on a regular grid, used when the action
         has at most ``max_grid_dims`` dimensions
+    :param grid_points: the grid's values per action dimension instead, in normalised units
+        [-1, 1] (e.g. ``[-1, -0.2, 0, 0.2, 1]``: small actions beside the full push); None: the
+        regular grid of ``grid_size``
     :param max_grid_dims: largest action dimension searched on a grid
     :param n_samples: uniformly sampled candidates (fixed at construction) in higher dimensions
     :param refine_steps: projected gradient-ascent steps on Q through psi from the best candidate
@@ -398,6 +401,7 @@ class ActionSearchConfig:
     # Reacher-v5 is worse with 3 (-12.1 vs -8.8, results/unseen_envs.md: its control cost wants small
     # torques). Pendulum-v1's preset keeps 21 (5 ended at -323 +- 150 there).
     grid_size: int = 3
+    grid_points: tuple[float, ...] | None = None
     max_grid_dims: int = 2
     n_samples: int = 256
     refine_steps: int = 0
@@ -410,6 +414,15 @@ class ActionSearchConfig:
             isinstance(self.grid_size, int) and self.grid_size >= 2,
             "an integer >= 2",
         )
+        if self.grid_points is not None:
+            check_list("action_search.grid_points", self.grid_points)
+            points = list(self.grid_points)
+            check(
+                "action_search.grid_points",
+                self.grid_points,
+                len(points) >= 2 and all(_is_number(x) and -1 <= x <= 1 for x in points) and len(set(points)) == len(points),
+                "a list of at least 2 distinct numbers in [-1, 1] (normalised action units)",
+            )
         check_positive_int("action_search.max_grid_dims", self.max_grid_dims)
         check_positive_int("action_search.n_samples", self.n_samples)
         check(

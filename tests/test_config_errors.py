@@ -4,6 +4,7 @@ import pytest
 
 from cme_agent import CMEPolicyIteration
 from cme_agent.config import (
+    ActionSearchConfig,
     FeatureSelectionConfig,
     ObservationConfig,
     StateFeatureConfig,
@@ -27,6 +28,14 @@ from cme_agent.config import (
             r"feature_selection\.bandwidths='0\.3' is invalid: must be a list",
         ),
         (StateFeatureConfig, "phi", {"resolution": 2.5}, r"phi\.resolution=2\.5 is invalid: must be a list"),
+        (
+            ActionSearchConfig,
+            "action_search",
+            {"grid_points": 0.2},
+            r"action_search\.grid_points=0\.2 is invalid: must be a list",
+        ),
+        (ActionSearchConfig, "action_search", {"grid_points": [0.0, 2.0]}, r"action_search\.grid_points=.*in \[-1, 1\]"),
+        (ActionSearchConfig, "action_search", {"grid_points": [0.5, 0.5]}, r"action_search\.grid_points=.*distinct"),
         (ObservationConfig, "observation", {"low": -1.0, "high": [1.0]}, r"observation\.low=-1\.0 is invalid: must be a list"),
         (ObservationConfig, "observation", {"high": 2}, r"observation\.high=2 is invalid: must be a list"),
         (ObservationConfig, "observation", {"angle_pairs": 0}, r"observation\.angle_pairs=0 is invalid: must be a list"),

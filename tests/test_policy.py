@@ -67,6 +67,18 @@ def test_greedy_high_dimensional_box_uses_sampled_candidates():
     assert torch.equal(actions, torch.zeros(4, 3))  # the centre is always a candidate
 
 
+def test_grid_points_give_the_candidates_in_env_units():
+    policy = _policy(spaces.Box(-2.0, 2.0, (2,), np.float32), action_search={"grid_points": [-1, -0.2, 0, 0.2, 1]})
+    assert policy.candidates.shape == (25, 2)
+    values = torch.tensor([-2.0, -0.4, 0.0, 0.4, 2.0])
+    torch.testing.assert_close(policy.candidates[:5], torch.stack([torch.full((5,), -2.0), values], dim=1))
+    reward = RewardSpec(lambda obs, a: -((a - 0.4) ** 2).sum(1))  # best at a small action the 3-point grid lacks
+    small = _policy(
+        spaces.Box(-2.0, 2.0, (1,), np.float32), action_search={"grid_points": [-1, -0.2, 0, 0.2, 1]}, reward=reward
+    )
+    torch.testing.assert_close(small.greedy(torch.zeros(3, 2))[0], torch.full((3, 1), 0.4))
+
+
 def test_factorised_candidate_q_equals_paired_q():
     policy = _policy(spaces.Box(-1.0, 1.0, (2,), np.float32), action_search={"grid_size": 5})
     generator = torch.Generator().manual_seed(0)
