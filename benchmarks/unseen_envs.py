@@ -13,7 +13,9 @@ One job is (agent, env, seed), run in a fresh process (so its peak memory is its
   (the behaviour before the box expanded);
 - ``sac``: ``SAC("MlpPolicy", env_id, seed=seed)``, SB3's defaults (learning_starts=100,
   buffer_size=1e6, batch_size=256, train_freq=1, ...), on the CPU;
-- ``random``: uniform random actions, evaluated once on 100 episodes (a reference line).
+- ``random``: uniform random actions, evaluated once on 100 episodes (a reference line);
+- ``zero``: the action space's centre (zero torque on the MuJoCo envs) at every step, evaluated
+  the same way: the return of doing nothing, which a policy that has learned little matches.
 
 Every ``--eval-every`` env steps the learning agents are evaluated on 10 episodes of the
 deterministic policy, on a separate env seeded ``seed + 10_000``. Each job writes its curve to
@@ -53,9 +55,10 @@ from stable_baselines3.common.vec_env import VecEnv
 
 CUSTOM_ENV = "PointGoal2D-v0"
 ENVS = ("InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Reacher-v5", CUSTOM_ENV)
-AGENTS = ("cme", "cme_frozen", "sac", "random")
+AGENTS = ("cme", "cme_frozen", "sac", "random", "zero")
 LEARNERS = ("cme", "cme_frozen", "sac")
-SUITE_AGENTS = ("cme", "sac", "random")
+REFERENCES = ("random", "zero")
+SUITE_AGENTS = ("cme", "sac", "random", "zero")
 """The suite's agents; ``cme_frozen`` is an ablation run on request (``--agents cme_frozen``)."""
 TARGET_ENV, TARGET_RETURN, TARGET_STEPS = "InvertedPendulum-v5", 950.0, 5_000
 """Issue 14: InvertedPendulum-v5 at or above 950 within 5,000 env steps."""
@@ -143,6 +146,20 @@ class RandomAgent:
         return np.stack([self.action_space.sample() for _ in range(len(observation))]), None
 
 
+class ZeroAgent:
+    """The centre of a Box action space at every step (zero torque), with SB3's ``predict``.
+
+    :param action_space: the env's ``Box`` action space
+    """
+
+    def __init__(self, action_space: spaces.Box) -> None:
+        self.action = ((action_space.low + action_space.high) / 2).astype(action_space.dtype)
+
+    def predict(self, observation: np.ndarray, state: Any = None, episode_start: Any = None, deterministic: bool = False):
+        """The centre, once per observation of the batch."""
+        return np.repeat(self.action[None], len(observation), axis=0), None
+
+
 def make_learner(agent: str, env_id: str, seed: int) -> Any:
     """The agent at library defaults: CME with nothing but the env and the seed; SAC at SB3's defaults.
 
@@ -199,9 +216,10 @@ def run_job(job: Job) -> str:
         "evaluations": [],
     }
     eval_env = make_vec_env(job.env, n_envs=1, seed=job.seed + EVAL_SEED_OFFSET)
-    if job.agent == "random":
+    if job.agent in REFERENCES:
         start = time.perf_counter()
-        row = {"steps": 0, **evaluate(RandomAgent(eval_env.action_space, job.seed), eval_env, RANDOM_EPISODES)}
+        agent = RandomAgent(eval_env.action_space, job.seed) if job.agent == "random" else ZeroAgent(eval_env.action_space)
+        row = {"steps": 0, **evaluate(agent, eval_env, RANDOM_EPISODES)}
         record["evaluations"].append({**row, "eval_seconds": time.perf_counter() - start, "peak_rss_mib": peak_rss_mib()})
     else:
         model = make_learner(job.agent, job.env, job.seed)
@@ -252,10 +270,10 @@ def load_record(path: Path) -> dict[str, Any] | None:
 
 
 def planned_jobs(agents: list[str], envs: list[str], seeds: list[int], steps: int, eval_every: int, out: Path) -> list[Job]:
-    """The jobs in the order they run: the random references first (seconds each), then seed by
-    seed CME on every env, then SAC on every env."""
+    """The jobs in the order they run: the random and zero references first (seconds each), then
+    seed by seed CME on every env, then SAC on every env."""
     command = command_line()
-    order = [("random", seed) for seed in seeds] + [(agent, seed) for seed in seeds for agent in LEARNERS]
+    order = [(agent, seed) for seed in seeds for agent in REFERENCES] + [(agent, seed) for seed in seeds for agent in LEARNERS]
     return [
         Job(agent, env, seed, steps, eval_every, str(out), command) for agent, seed in order if agent in agents for env in envs
     ]
@@ -314,7 +332,7 @@ def summary_row(env: str, agent: str, runs: list[dict[str, Any]], random: float 
     finals = [run["evaluations"][-1]["return_mean"] for run in runs]
     seeds = ", ".join(str(run["job"]["seed"]) for run in runs)
     peak = max(run["peak_rss_mib"] for run in runs)
-    if agent == "random":
+    if agent in REFERENCES:
         episodes = f"{RANDOM_EPISODES} episodes per seed"
         return [
             env,
@@ -411,7 +429,7 @@ def verdicts(complete: dict[tuple[str, str], list[dict[str, Any]]], steps: int) 
 
 
 def plot(complete: dict[tuple[str, str], list[dict[str, Any]]], envs: list[str], out: Path) -> None:
-    """results/unseen_envs.png: one panel per env, each seed thin, the mean thick, random dashed."""
+    """results/unseen_envs.png: one panel per env, each seed thin, the mean thick, random dashed, zero dash-dotted."""
     plt = pyplot()
     if plt is None:
         return
@@ -432,10 +450,11 @@ def plot(complete: dict[tuple[str, str], list[dict[str, Any]]], envs: list[str],
                 steps = [runs[0]["evaluations"][i]["steps"] for i in range(shared)]
                 mean = [statistics.mean(run["evaluations"][i]["return_mean"] for run in runs) for i in range(shared)]
                 ax.plot(steps, mean, color=colour, linewidth=2, label=f"{agent} (mean of {len(runs)})")
-        random_runs = complete.get((env, "random"), [])
-        if random_runs:
-            level = statistics.mean(run["evaluations"][0]["return_mean"] for run in random_runs)
-            ax.axhline(level, color="grey", linestyle="--", label="random")
+        for reference, style in zip(REFERENCES, ("--", "-."), strict=True):
+            reference_runs = complete.get((env, reference), [])
+            if reference_runs:
+                level = statistics.mean(run["evaluations"][0]["return_mean"] for run in reference_runs)
+                ax.axhline(level, color="grey", linestyle=style, label=reference)
         if env == TARGET_ENV:
             ax.axhline(TARGET_RETURN, color="red", linestyle=":", label=f"target {TARGET_RETURN:g}")
             ax.axvline(TARGET_STEPS, color="red", linestyle=":", linewidth=0.8)
@@ -500,9 +519,10 @@ def report(envs: list[str], steps: int, out: Path) -> None:
             "",
             'CME is `CMEPolicyIteration("CMEPolicy", env_id, seed=seed)` with nothing else (no env here has a preset); '
             'SAC is `SAC("MlpPolicy", env_id, seed=seed)` at SB3\'s defaults (learning_starts=100, buffer 1e6, batch 256, '
-            "one gradient step per env step) on the CPU; random takes uniform actions. Final return = the last "
+            "one gradient step per env step) on the CPU; random takes uniform actions, zero the action space's centre "
+            "at every step (doing nothing). Final return = the last "
             f"{EVAL_EPISODES}-episode evaluation of the deterministic policy on an env seeded seed + {EVAL_SEED_OFFSET:,} "
-            f"(random: {RANDOM_EPISODES} episodes). 'steps to {TARGET_RETURN:g}' = first evaluation (every "
+            f"(random, zero: {RANDOM_EPISODES} episodes). 'steps to {TARGET_RETURN:g}' = first evaluation (every "
             f"{runs[0]['job']['eval_every'] if runs else '?'} steps) at or above it on {TARGET_ENV}, per seed. "
             "Train wall/CPU = seconds in learn() per run (thread CPU time; evaluations apart); peak MiB = ru_maxrss of the "
             "job's own process (torch, SB3 and MuJoCo included; what the process held before building the agent is in "
