@@ -383,9 +383,9 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         most ``observation.max_expansions`` times): psi's centres keep their place, B is refit on
         a sample of D (after the state reward, with ``state_reward``, on all of D) and planning
         restarts (Q's weights belonged to the old phi). The new observations, not all of D, set
-        the expansion: the quantiles of D would leave out a
-        drift that is a small share of D (a cart pushed off centre for the first time), and the
-        policy would meet the box's edge again at once.
+        the expansion: the quantiles of D would leave out a drift that is a small share of D (a
+        cart pushed off centre for the first time), and the policy would meet the box's edge
+        again at once.
 
         :param new_data: the transitions of this iteration
         """
