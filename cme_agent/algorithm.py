@@ -535,7 +535,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             if len(new_data) == 0 or budget <= 0:
                 return self._record_features_added(0)
             batch = new_data.concat(self.store.sample(config.subsample_size, self._torch_rng))
-            if (message := dynamics.calibrate_reward_row(batch.rewards)) is not None:
+            if (message := dynamics.calibrate_reward_row(batch.rewards, batch.terminated)) is not None:
                 self.logger.info(message)
             z = dynamics.encode(batch.obs, batch.actions)
             residual = dynamics.targets(batch) - dynamics.predict(dynamics.psi(z))

@@ -154,9 +154,10 @@ class ModelUpdateConfig:
         data, the reward then follows phi's global fit instead of falling to 0)
     :param state_reward_l2: ridge of that fit, relative to the mean diagonal of its normal equations
     :param off_data_reward: what a learned reward predicts off the data, where psi's kernels
-        fade (without ``state_reward``): ``"least"``, the least reward of the first
-        feature-selection batch (pessimism that leaves alive-bonus rewards, whose least is a
-        fall's 0, as they were), or ``"zero"`` (the row regresses the reward itself)
+        fade (without ``state_reward``): ``"least"``, the least of 0 and the non-terminal rewards
+        of the first feature-selection batch (the worst cost seen where rewards are costs; 0,
+        as with ``"zero"``, where they are alive bonuses), or ``"zero"`` (the row regresses the
+        reward itself)
     """
 
     n_steps: int = 200

@@ -1,6 +1,7 @@
 """What a learned reward predicts off the data (``model_update.off_data_reward``): psi's kernels
-fade away from the visited state-actions, so its reward row predicts its own offset there — the
-least reward of the first batch by default, 0 with ``"zero"`` — while on the data both fit r."""
+fade away from the visited state-actions, so its reward row predicts its own offset there — by
+default the least of 0 and the first batch's non-terminal rewards, 0 with ``"zero"`` — while on
+the data both fit r."""
 
 from __future__ import annotations
 
@@ -34,7 +35,7 @@ def _fitted(off_data_reward: str) -> tuple[CMEDynamics, Transitions]:
     """A model whose psi has kernels at 300 of the data's state-actions and B by ridge on them."""
     dynamics = CMEDynamics(OBS_SPACE, ACTION_SPACE, {"kind": "fourier", "max_width": 101}, off_data_reward=off_data_reward)
     data = _costs(2000, 0)
-    dynamics.calibrate_reward_row(data.rewards[:500])
+    dynamics.calibrate_reward_row(data.rewards[:500], data.terminated[:500])
     z = dynamics.encode(data.obs[:300], data.actions[:300])
     dynamics.grow(z, torch.full((300,), 0.15), torch.zeros(dynamics.p + 1, 300))
     dynamics.refit_weights(data, 1e-6)
@@ -63,13 +64,29 @@ def test_on_the_data_both_fit_the_reward_and_off_it_the_row_predicts_its_offset(
 def test_the_offset_is_set_once_before_the_first_feature():
     dynamics, _ = _fitted("least")
     offset = float(dynamics.reward_offset)
-    dynamics.calibrate_reward_row(torch.tensor([-50.0, 10.0]))  # q > 0: the row's units are fixed
+    dynamics.calibrate_reward_row(torch.tensor([-50.0, 10.0]), torch.zeros(2, dtype=torch.bool))  # q > 0: units fixed
+    assert float(dynamics.reward_offset) == offset
+
+
+@pytest.mark.parametrize(
+    "rewards, terminated, offset",
+    [
+        ([-3.0, -1.0, -2.0], [False, False, False], -3.0),  # costs: the worst one seen
+        ([9.3, 9.1, -1.5], [False, False, True], 0.0),  # an alive bonus: a fall's reward does not count, never above 0
+        ([1.0, 1.0, 0.0], [False, False, True], 0.0),  # InvertedPendulum's: as the offset-free row
+        ([2.0, -0.5, -4.0], [False, False, True], -0.5),  # the least non-terminal reward
+        ([-2.0, -3.0], [True, True], 0.0),  # no non-terminal reward: 0
+    ],
+)
+def test_the_offset_is_the_least_of_0_and_the_non_terminal_rewards(rewards, terminated, offset):
+    dynamics = CMEDynamics(OBS_SPACE, ACTION_SPACE, {"kind": "fourier", "max_width": 101})
+    dynamics.calibrate_reward_row(torch.tensor(rewards), torch.tensor(terminated))
     assert float(dynamics.reward_offset) == offset
 
 
 def test_with_the_state_reward_the_row_learns_the_rest_from_0():
     dynamics = CMEDynamics(OBS_SPACE, ACTION_SPACE, {"kind": "fourier", "max_width": 101}, state_reward=True)
-    dynamics.calibrate_reward_row(torch.tensor([-3.0, -1.0]))
+    dynamics.calibrate_reward_row(torch.tensor([-3.0, -1.0]), torch.zeros(2, dtype=torch.bool))
     assert dynamics.off_data_reward == "zero" and float(dynamics.reward_offset) == 0.0
 
 

@@ -116,7 +116,7 @@ def test_agent_fits_it_each_iteration_and_it_survives_save_load(tmp_path: Path):
 
 def test_a_model_saved_before_the_state_reward_loads_with_c_zero():
     old = _dynamics(state_reward=False)
-    old.calibrate_reward_row(torch.tensor([0.0, 2.0]))
+    old.calibrate_reward_row(torch.tensor([0.0, 2.0]), torch.zeros(2, dtype=torch.bool))
     new = _dynamics()
     new.load_state_dict(old.state_dict())
     assert float(new.state_reward.abs().sum()) == 0.0 and new.state_reward_restarts()

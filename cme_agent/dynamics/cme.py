@@ -13,11 +13,11 @@ Regression target of a transition: the continuation-weighted successor feature
 ``phi~(s') = (1 - terminated) phi(s')`` (terminal states are absorbing with phi = 0), minus
 ``phi(s)`` in the feature-dynamics form of section 2.3. Since phi ends with a constant 1, the
 model's last phi row predicts the continuation probability; when the reward is learned, one
-more row regresses ``(r - reward_offset) / reward_scale`` on psi: the whole reward less its
-least value in the first batch (``off_data_reward="least"``: where psi's kernels fade, off the
-data, the model predicts that least reward, not 0), or with ``state_reward`` what is left of
-it after its state part ``<c, phi(s)>``, fit by ridge regression on all of D
-(:meth:`CMEDynamics.update_state_reward`).
+more row regresses ``(r - reward_offset) / reward_scale`` on psi: the whole reward less an
+offset (``off_data_reward="least"``: the least of 0 and the first batch's non-terminal rewards;
+where psi's kernels fade, off the data, the model predicts that offset), or with
+``state_reward`` what is left of it after its state part ``<c, phi(s)>``, fit by ridge
+regression on all of D (:meth:`CMEDynamics.update_state_reward`).
 
 Shapes: N a batch, p = width of phi, q = width of psi, p_out = p (+ 1 with a learned reward).
 """
@@ -73,7 +73,8 @@ class CMEDynamics(nn.Module):
     :param state_reward: with a learned reward, fit its state part ``<c, phi(s)>`` by ridge
         regression on all of D (:meth:`update_state_reward`) and leave psi's row the rest
     :param off_data_reward: what a learned reward predicts off the data, where psi fades
-        (without ``state_reward``): ``"least"``, the least reward of the first batch, or ``"zero"``
+        (without ``state_reward``): ``"least"``, the least of 0 and the first batch's
+        non-terminal rewards, or ``"zero"``
     """
 
     def __init__(
@@ -168,19 +169,24 @@ class CMEDynamics(nn.Module):
         """Inputs psi (N, q) and targets y (N, p_out) of a batch."""
         return self.features(batch.obs, batch.actions), self.targets(batch)
 
-    def calibrate_reward_row(self, rewards: torch.Tensor) -> str | None:
+    def calibrate_reward_row(self, rewards: torch.Tensor, terminated: torch.Tensor) -> str | None:
         """Before the first feature, scale the learned reward row to unit spread and, with
-        ``off_data_reward="least"``, shift it by the batch's least reward (what the model then
-        predicts off the data). Both stay fixed: B's row is learned in their units.
+        ``off_data_reward="least"``, shift it by the least of 0 and the batch's non-terminal
+        rewards: what the model then predicts off the data. Where rewards are costs that is the
+        worst cost seen, a pessimism; it is never above 0, the offset-free row's value off the
+        data; and a terminal transition's reward (a fall's, without the alive bonus) does not
+        count, the termination model already pricing the fall. Both stay fixed: B's row is
+        learned in their units.
 
         :param rewards: (N,) the first feature-selection batch's rewards
+        :param terminated: (N,) bool, which of them ended in a terminal state
         :return: a log line when it calibrated (a learned reward and q = 0), else None
         """
         if not self.learn_reward or self.q > 0:
             return None
         self.reward_scale.fill_(float(rewards.std().clamp_min(1e-3)))
         if self.off_data_reward == "least":
-            self.reward_offset.fill_(float(rewards.min()))
+            self.reward_offset.fill_(min(0.0, float(rewards[~terminated].min())) if bool((~terminated).any()) else 0.0)
         off_data = (
             "its state part's fit on phi (model_update.state_reward)"
             if self.fits_state_reward
