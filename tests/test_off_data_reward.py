@@ -93,7 +93,7 @@ def test_with_the_state_reward_the_row_learns_the_rest_from_0():
 def test_an_unknown_choice_is_refused():
     with pytest.raises(ValueError, match=r"model_update.off_data_reward.*least"):
         ModelUpdateConfig(off_data_reward="mean")
-    with pytest.raises(ValueError, match="off_data_reward='mean' is invalid"):
+    with pytest.raises(ValueError, match=r"model_update\.off_data_reward='mean' is invalid"):
         CMEDynamics(OBS_SPACE, ACTION_SPACE, off_data_reward="mean")
 
 

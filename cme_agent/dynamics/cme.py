@@ -33,7 +33,15 @@ from gymnasium import spaces
 from torch import nn
 
 from cme_agent.buffer import Transitions
-from cme_agent.config import OFF_DATA_REWARDS, EvaluationConfig, ObservationConfig, StateFeatureConfig, build_config
+from cme_agent.config import (
+    OFF_DATA_REWARDS,
+    EvaluationConfig,
+    ModelUpdateConfig,
+    ObservationConfig,
+    StateFeatureConfig,
+    build_config,
+    check_choice,
+)
 from cme_agent.dynamics.sgd import sgd_step
 from cme_agent.encoding import ActionEncoder, ObservationEncoder
 from cme_agent.kernel_bank import KernelBank, gaussian_kernel, kernel_from_points, kernel_points, resize_buffers
@@ -90,8 +98,7 @@ class CMEDynamics(nn.Module):
         off_data_reward: str = "least",
     ) -> None:
         super().__init__()
-        if off_data_reward not in OFF_DATA_REWARDS:
-            raise ValueError(f"off_data_reward={off_data_reward!r} is invalid: must be one of {OFF_DATA_REWARDS}")
+        check_choice("model_update.off_data_reward", off_data_reward, OFF_DATA_REWARDS)
         self.obs_encoder = ObservationEncoder(observation_space, build_config(ObservationConfig, observation, "observation"))
         self.action_encoder = ActionEncoder(action_space)
         phi_config = phi if callable(phi) else build_config(StateFeatureConfig, phi, "phi")
@@ -186,7 +193,8 @@ class CMEDynamics(nn.Module):
             return None
         self.reward_scale.fill_(float(rewards.std().clamp_min(1e-3)))
         if self.off_data_reward == "least":
-            self.reward_offset.fill_(min(0.0, float(rewards[~terminated].min())) if bool((~terminated).any()) else 0.0)
+            non_terminal = rewards[~terminated]
+            self.reward_offset.fill_(min(0.0, float(non_terminal.min())) if len(non_terminal) else 0.0)
         off_data = (
             "its state part's fit on phi (model_update.state_reward)"
             if self.fits_state_reward
@@ -287,7 +295,7 @@ class CMEDynamics(nn.Module):
         batch: Transitions,
         l2: float,
         data: Transitions | None = None,
-        state_reward_l2: float = 1e-3,
+        state_reward_l2: float = ModelUpdateConfig.state_reward_l2,
     ) -> str:
         """Widen the estimated observation box to cover ``obs`` (:meth:`ObservationEncoder.expand`)
         and carry the model into the new coordinates: psi's centres keep their env-unit
