@@ -3,14 +3,18 @@
 from __future__ import annotations
 
 import csv
+import functools
 import json
+import multiprocessing
 import os
 import resource
 import shlex
 import subprocess
 import sys
+import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
@@ -128,3 +132,42 @@ def plot_learning_curves(panels: dict[str, tuple[list[list[dict[str, Any]]], flo
     fig.suptitle(command_line().replace("`", ""), fontsize=7)
     fig.tight_layout()
     fig.savefig(RESULTS / filename, dpi=100)
+
+
+class RecordedJob(Protocol):
+    """A benchmark job whose finished run is kept in one JSON record."""
+
+    seed: int
+    overrides: tuple[str, ...]
+
+    @property
+    def record(self) -> Path: ...
+
+
+def _recorded(compute: Callable[[Any], list[dict[str, Any]]], job: RecordedJob) -> list[dict[str, Any]]:
+    """The job's rows from its record if an earlier invocation finished it, else ``compute(job)``, then recorded."""
+    if job.record.exists():
+        return json.loads(job.record.read_text())["curve"]
+    rows = compute(job)
+    save_record(job.record, {"overrides": list(job.overrides), "command": command_line(), "curve": rows})
+    return rows
+
+
+def run_recorded(
+    jobs: Sequence[RecordedJob], compute: Callable[[Any], list[dict[str, Any]]], workers: int, report_only: bool, stem: str
+) -> tuple[list[list[dict[str, Any]]], list[str], float]:
+    """Run ``compute`` (a module-level function) on every job not on record, ``workers`` at a time
+    in fresh processes; with ``report_only`` train nothing and refuse missing records.
+
+    :return: every job's rows, the commands (with their commits) that made the records, and the
+        wall-clock seconds
+    """
+    if report_only:
+        missing = [job.seed for job in jobs if not job.record.exists()]
+        if missing:
+            raise SystemExit(f"--report-only: no record for seeds {missing} in results/{stem}/")
+    start = time.perf_counter()
+    with multiprocessing.get_context("spawn").Pool(min(workers, len(jobs))) as pool:
+        curves = pool.map(functools.partial(_recorded, compute), jobs)
+    runs = sorted({json.loads(job.record.read_text())["command"] for job in jobs})
+    return curves, runs, time.perf_counter() - start

@@ -27,17 +27,14 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
-import multiprocessing
 import statistics
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-from common import RESULTS, command_line, compose_config, markdown_table, save_record, write_report
+from common import RESULTS, command_line, compose_config, markdown_table, run_recorded, write_report
 from learning_quality import TARGETS
 from model_exploitation import evaluate_with_model_errors
 from stable_baselines3.common.logger import configure
@@ -89,15 +86,6 @@ def plan_on_fixed_model(job: Job) -> list[dict[str, Any]]:
         row["changed"] = float((model.policy.act(probes) != trained_actions).reshape(PROBE_STATES, -1).any(1).float().mean())
         rows.append(row)
         print(f"{job.env} seed {job.seed} block {block}: {row['return_mean']:.1f}", flush=True)
-    return rows
-
-
-def run_one(job: Job) -> list[dict[str, Any]]:
-    """One seed, read from its record if an earlier invocation finished it."""
-    if job.record.exists():
-        return json.loads(job.record.read_text())["curve"]
-    rows = plan_on_fixed_model(job)
-    save_record(job.record, {"overrides": list(job.overrides), "command": command_line(), "curve": rows})
     return rows
 
 
@@ -159,15 +147,8 @@ def main() -> None:
     parser.add_argument("--report-only", action="store_true", help="report the runs on record, train nothing")
     args = parser.parse_args()
     jobs = [Job(args.env, seed, args.steps, args.blocks, tuple(args.overrides), args.stem) for seed in args.seeds]
-    if args.report_only:
-        missing = [job.seed for job in jobs if not job.record.exists()]
-        if missing:
-            raise SystemExit(f"--report-only: no record for seeds {missing} in results/{args.stem}/")
-    start = time.perf_counter()
-    with multiprocessing.get_context("spawn").Pool(min(args.workers, len(jobs))) as pool:
-        curves = pool.map(run_one, jobs)
-    runs = sorted({json.loads(job.record.read_text())["command"] for job in jobs})
-    write_report(args.stem, report(args.env, curves, args.seeds, runs, time.perf_counter() - start, args.workers), curves)
+    curves, runs, wall = run_recorded(jobs, plan_on_fixed_model, args.workers, args.report_only, args.stem)
+    write_report(args.stem, report(args.env, curves, args.seeds, runs, wall, args.workers), curves)
 
 
 if __name__ == "__main__":
