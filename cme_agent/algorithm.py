@@ -89,6 +89,9 @@ def _check_spaces(observation_space: spaces.Space, action_space: spaces.Space) -
 
 SET_BY_THE_AGENT = {
     "feature_dynamics": "model_update={'feature_dynamics': ...}",
+    "state_reward": "model_update={'state_reward': ...}",
+    "off_data_reward": "model_update={'off_data_reward': ...}",
+    "action_scale": "feature_selection={'action_scale': ...}",
     "reward": "reward_fn=...",
     "evaluation": "evaluation=...",
     "improvement": "improvement=...",
@@ -249,6 +252,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             feature_dynamics=self.model_update_config.feature_dynamics,
             state_reward=self.model_update_config.state_reward,
             off_data_reward=self.model_update_config.off_data_reward,
+            action_scale=self.feature_selection_config.action_scale,
             reward=reward,
             evaluation=self.evaluation_config,
             improvement=self.improvement_config,

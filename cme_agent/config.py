@@ -109,6 +109,13 @@ class FeatureSelectionConfig:
     :param theta: step theta_k in [0, 1] applied to the new weights, B_k = (B_{k-1}, theta B_new)
     :param orthogonal: refit the weights of the picked atoms jointly by least squares
         (orthogonal matching pursuit) instead of keeping the greedy weights
+    :param action_scale: weight of a Box action in psi's kernel distances: the action,
+        normalised to [-1, 1], is multiplied by it before the kernels, so a kernel of bandwidth h
+        spans h / action_scale of the action's normalised range. Below 1 each kernel covers
+        more actions, and what the model learns about one action's effect at a state carries to
+        its neighbours: the greedy step ranks actions the data hold few of by a smooth model of
+        their effect, not by the kernels of the few actions taken there. A Discrete action's
+        one-hot is not scaled (its actions have no neighbours)
     """
 
     bandwidths: tuple[float, ...] = (0.15, 0.3, 0.6)
@@ -118,6 +125,9 @@ class FeatureSelectionConfig:
     subsample_size: int = 2000
     theta: float = 1.0
     orthogonal: bool = False
+    # InvertedPendulum-v5, 5,000 steps, seeds 0-9: 0.2 ends at 448.7 +- 357.5 with 1/10 seeds at 950,
+    # 1.0 at 395.9 +- 420.0 with 3/10 (probe_ip_ascale02, probe_ip_expand_new): not the default on an unseen env
+    action_scale: float = 1.0
 
     def __post_init__(self) -> None:
         check_list("feature_selection.bandwidths", self.bandwidths)
@@ -130,6 +140,7 @@ class FeatureSelectionConfig:
             check_positive_int("feature_selection.max_total_features", self.max_total_features)
         check_positive_int("feature_selection.subsample_size", self.subsample_size)
         check_unit_interval("feature_selection.theta", self.theta, open_low=True)
+        check_positive("feature_selection.action_scale", self.action_scale)
 
 
 OFF_DATA_REWARDS = ("least", "zero")

@@ -105,6 +105,7 @@ class CMEPolicy(BasePolicy):
     :param reward: the known reward; None: the model learns it
     :param state_reward: a learned reward's state part is fit on phi (``model_update.state_reward``)
     :param off_data_reward: what a learned reward predicts off the data (``model_update.off_data_reward``)
+    :param action_scale: the weight of the action in psi's input (``feature_selection.action_scale``)
     :param evaluation: the evaluation settings, for the memory check of phi (None: defaults)
     :param improvement: the improvement step (:class:`ImprovementConfig` or dict; None: the
         paper's smoothed greedy step)
@@ -125,6 +126,7 @@ class CMEPolicy(BasePolicy):
         improvement: ImprovementConfig | dict[str, Any] | None = None,
         state_reward: bool = False,
         off_data_reward: str = "least",
+        action_scale: float = 1.0,
     ) -> None:
         super().__init__(observation_space, action_space, squash_output=False)
         self.phi_spec = phi
@@ -147,6 +149,7 @@ class CMEPolicy(BasePolicy):
             evaluation,
             state_reward,
             off_data_reward,
+            action_scale,
         )
         self.register_buffer("theta_phi", torch.zeros(self.dynamics.p))
         self.register_buffer("theta_psi", torch.zeros(0))
@@ -189,6 +192,7 @@ class CMEPolicy(BasePolicy):
             improvement=self.improvement,
             state_reward=self.dynamics.fits_state_reward,
             off_data_reward=self.dynamics.off_data_reward,
+            action_scale=float(self.dynamics.action_scale),
         )
         return data
 

@@ -66,7 +66,8 @@ def test_greedy_step_equals_the_paired_computation(trained, env_id, monkeypatch)
     assert torch.allclose(policy.q_values(states, step.actions), step.values, atol=1e-4)
     assert torch.allclose(step.psi, policy.dynamics.features(states, step.actions), atol=1e-6)
     assert torch.allclose(step.phi, policy.dynamics.phi(states))
-    assert torch.equal(policy.act(states), step.actions)
+    # act() builds psi in other blocks, whose products round differently: its actions are maximisers to rounding
+    assert torch.allclose(policy.q_values(states, policy.act(states)), step.values, atol=1e-4)
     dynamics = policy.dynamics
     read = policy.greedy_step(states, dynamics.readout())  # psi read block by block, never stored
     assert torch.equal(read.actions, step.actions)

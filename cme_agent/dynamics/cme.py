@@ -83,6 +83,8 @@ class CMEDynamics(nn.Module):
     :param off_data_reward: what a learned reward predicts off the data, where psi fades
         (without ``state_reward``): ``"least"``, the least of 0 and the first batch's
         non-terminal rewards, or ``"zero"``
+    :param action_scale: the weight of a Box action in psi's input (``feature_selection.action_scale``;
+        a Discrete action's one-hot enters unscaled)
     """
 
     def __init__(
@@ -96,6 +98,7 @@ class CMEDynamics(nn.Module):
         evaluation: EvaluationConfig | None = None,
         state_reward: bool = False,
         off_data_reward: str = "least",
+        action_scale: float = 1.0,
     ) -> None:
         super().__init__()
         check_choice("model_update.off_data_reward", off_data_reward, OFF_DATA_REWARDS)
@@ -110,6 +113,9 @@ class CMEDynamics(nn.Module):
         self.register_buffer("weights", torch.zeros(self.p + int(self.learn_reward), 0))
         self.register_buffer("reward_scale", torch.ones(()))
         self.register_buffer("reward_offset", torch.zeros(()))
+        self.register_buffer(
+            "action_scale", torch.tensor(1.0 if self.action_encoder.discrete else float(action_scale), dtype=torch.float64)
+        )
         self.fits_state_reward = state_reward and self.learn_reward and self.p <= MAX_STATE_REWARD_WIDTH
         self.off_data_reward = "zero" if self.fits_state_reward else off_data_reward
         if state_reward and self.learn_reward and not self.fits_state_reward:
@@ -146,7 +152,12 @@ class CMEDynamics(nn.Module):
     # ------------------------------------------------------------------ inputs and targets
     def encode(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """Normalised state-actions z = (z_s, z_a): (N, obs_dim), (N, ...) -> (N, obs_dim + action_dim)."""
-        return torch.cat([self.obs_encoder.normalize(obs), self.action_encoder.encode(actions)], dim=1)
+        return torch.cat([self.obs_encoder.normalize(obs), self.encode_actions(actions)], dim=1)
+
+    def encode_actions(self, actions: torch.Tensor) -> torch.Tensor:
+        """z_a, the action part of psi's input: a Box action normalised to [-1, 1] times
+        ``feature_selection.action_scale``, or a Discrete action's one-hot: (N, act_dim) or (N,) -> (N, action_dim)."""
+        return self.action_encoder.encode(actions).mul_(self.action_scale)
 
     def features(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """psi(s, a) at paired states and actions: (N, obs_dim), (N, ...) -> (N, q)."""
@@ -158,7 +169,7 @@ class CMEDynamics(nn.Module):
 
     def action_factor(self, actions: torch.Tensor) -> torch.Tensor:
         """A (K, q), the action factor of psi: :param actions: (K, ...) actions in env units."""
-        return self.psi.action_factor(self.action_encoder.encode(actions))
+        return self.psi.action_factor(self.encode_actions(actions))
 
     def targets(self, batch: Transitions) -> torch.Tensor:
         """Regression targets y of a batch: (N, p_out), phi~(s') (- phi(s)) (and the reward row's
@@ -348,6 +359,8 @@ class CMEDynamics(nn.Module):
         resize_buffers(self, state_dict, prefix, {"weights": 1})
         if prefix + "reward_offset" not in state_dict:  # saved before the offset: the row learned r itself
             state_dict[prefix + "reward_offset"] = torch.zeros_like(self.reward_offset)
+        if prefix + "action_scale" not in state_dict:  # saved before the scale: the action entered psi unscaled
+            state_dict[prefix + "action_scale"] = torch.ones_like(self.action_scale)
         if self.fits_state_reward and prefix + "state_reward" not in state_dict:  # saved before the state reward: c = 0
             for name, buffer in self.named_buffers(recurse=False):
                 if name.startswith("state_reward"):
