@@ -96,8 +96,8 @@ class FeatureSelectionConfig:
     """Matching pursuit over a data-dependent kernel dictionary (paper eq. (5), section 2.2).
 
     :param bandwidths: widths of the Gaussian kernels of the dictionary, in normalised
-        state-action units (each input dimension scaled to [-1, 1]); one atom per new point
-        and bandwidth
+        state-action units (each input dimension scaled to [-1, 1], a Box action then times
+        ``action_scale``); one atom per new point and bandwidth
     :param threshold: stop when the best atom removes less than this fraction of the
         current residual energy
     :param max_features: cap on the features added per iteration
