@@ -105,7 +105,7 @@ class CMEPolicy(BasePolicy):
     :param reward: the known reward; None: the model learns it
     :param state_reward: a learned reward's state part is fit on phi (``model_update.state_reward``)
     :param off_data_reward: what a learned reward predicts off the data (``model_update.off_data_reward``)
-    :param action_scale: the weight of the action in psi's input (``feature_selection.action_scale``)
+    :param action_scale: the weight of a Box action in psi's input (``feature_selection.action_scale``; Discrete: unscaled)
     :param evaluation: the evaluation settings, for the memory check of phi (None: defaults)
     :param improvement: the improvement step (:class:`ImprovementConfig` or dict; None: the
         paper's smoothed greedy step)
