@@ -137,9 +137,11 @@ def optimal_returns(policy: OptimalPendulumPolicy, seed: int, episodes: int = 10
 
 
 def agent_finals(stem: str) -> dict[int, float]:
-    """Final evaluation return per seed of a learning_quality run saved in ``results/<stem>/``."""
+    """Final evaluation return per seed of a learning_quality run saved in ``results/<stem>/`` (its records
+    are ``pendulum_seed<k>.json`` with ``--envs pendulum``, ``Pendulum-v1_seed<k>.json`` with ``--env-id``)."""
     finals = {}
-    for path in sorted((RESULTS / stem).glob("pendulum_seed*.json")):
+    folder = RESULTS / stem
+    for path in sorted([*folder.glob("pendulum_seed*.json"), *folder.glob("Pendulum-v1_seed*.json")]):
         curve = json.loads(path.read_text())["curve"]
         finals[int(curve[-1]["seed"])] = float(curve[-1]["return_mean"])
     return finals
