@@ -8,7 +8,8 @@ Each iteration of :meth:`CMEPolicyIteration.learn` is one pass of Algorithm 1:
 then :meth:`~CMEPolicyIteration.train_iteration` on the new data:
 
 2. :meth:`~CMEPolicyIteration.feature_selection` -- matching pursuit, eq. (5);
-3. :meth:`~CMEPolicyIteration.model_update` -- SGD on the regularised loss, eq. (6);
+3. :meth:`~CMEPolicyIteration.model_update` -- SGD on the regularised loss, eq. (6) (or its
+   exact minimiser on a fixed-size sample of D);
 4. ``evaluation.rounds`` times on a fresh collection C of states:
    :meth:`~CMEPolicyIteration.policy_evaluation` (eq. (7)) and
    :meth:`~CMEPolicyIteration.policy_improvement` (Q smoothing).
@@ -72,10 +73,6 @@ from cme_agent.state_features import RBFGrid
 
 SelfCME = TypeVar("SelfCME", bound="CMEPolicyIteration")
 
-EXPANSION_REFIT_SIZE = 20_000
-"""Transitions of D that B is refit on when the observation box expands (the refit costs
-O(N q^2) once, about a second at q = 2,000)."""
-
 
 def _check_spaces(observation_space: spaces.Space, action_space: spaces.Space) -> None:
     """Refuse, naming the space, what the agent cannot handle."""
@@ -131,7 +128,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
     :param omega: step of the Q smoothing Q_k = (1 - omega) Q_{k-1} + omega Q^_k, in (0, 1]
     :param steps_per_iteration: m, env steps collected per iteration (all envs together)
     :param feature_selection: matching pursuit settings (:class:`FeatureSelectionConfig` or dict)
-    :param model_update: SGD settings (:class:`ModelUpdateConfig` or dict)
+    :param model_update: how B is learned: SGD (eq. (6)) or an exact ridge refit (:class:`ModelUpdateConfig` or dict)
     :param evaluation: policy evaluation settings (:class:`EvaluationConfig` or dict)
     :param exploration: behaviour policy settings (:class:`ExplorationConfig` or dict)
     :param improvement: the policy improvement step (:class:`ImprovementConfig` or dict): the
@@ -385,7 +382,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         phase). Later, when more than ``observation.expand_outside`` of an iteration's new
         observations fall outside it, the box is expanded to cover those new observations (at
         most ``observation.max_expansions`` times): psi's centres keep their place, B is refit on
-        a sample of D (after the state reward, with ``state_reward``, on all of D) and planning
+        a sample of D (:meth:`refit_sample`; after the state reward, with ``state_reward``, on all of D) and planning
         restarts (Q's weights belonged to the old phi). The new observations, not all of D, set
         the expansion: the quantiles of D would leave out a drift that is a small share of D (a
         cart pushed off centre for the first time), and the policy would meet the box's edge
@@ -403,9 +400,9 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         new_states = torch.cat([new_data.obs, new_data.next_obs])
         if encoder.outside_share(new_states) <= config.expand_outside:
             return
-        sample = self.store.sample(min(len(self.store), EXPANSION_REFIT_SIZE), self._torch_rng)
         config = self.model_update_config
         data = self.store.get(slice(0, len(self.store))) if self.dynamics.fits_state_reward else None
+        sample = self.refit_sample()
         self.logger.info(self.dynamics.expand_observation_box(new_states, sample, config.l2, data, config.state_reward_l2))
         self.policy.restart()
         self._value_weights = None
@@ -565,14 +562,20 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         return self.store.get(torch.cat(indices).to(self.device))
 
     def model_update(self) -> None:
-        """Update the CME model, eq. (6): ``n_steps`` SGD steps on minibatches drawn from D.
+        """Update the CME model B: by default eq. (6), ``n_steps`` SGD steps on minibatches drawn
+        from D; with ``model_update.method="ridge"`` the exact minimiser of the same regularised
+        loss on a fixed-size sample of D (:meth:`refit_sample`), whatever B was before.
 
-        A diverging update (non-finite B, or the loss on a check batch up tenfold) is undone,
+        A diverging SGD update (non-finite B, or the loss on a check batch up tenfold) is undone,
         the step size halved for the rest of the run, and a warning issued.
         """
         config, dynamics = self.model_update_config, self.dynamics
         with self._timed("model_update"):
             if dynamics.q == 0:
+                return
+            if config.method == "ridge":
+                self.logger.record("train/model_loss_train", dynamics.refit_weights(self.refit_sample(), config.l2))
+                self._record_holdout_loss()
                 return
             check_psi, check_targets = dynamics.regression_data(self.store.sample(config.batch_size * 4, self._torch_rng))
             loss_before = float(dynamics.loss(check_psi, check_targets))
@@ -593,6 +596,15 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             self.logger.record("train/model_loss_train", loss_after)
             self.logger.record("train/model_step_scale", self.model_step_scale)
             self._record_holdout_loss()
+
+    def refit_sample(self) -> Transitions:
+        """The transitions B is refit on: all of D while it holds at most
+        ``model_update.refit_size`` of them, else that many drawn uniformly (with replacement,
+        so the cost stays O(refit_size) however large D grows)."""
+        size = self.model_update_config.refit_size
+        if len(self.store) > size:
+            return self.store.sample(size, self._torch_rng)
+        return self.store.get(slice(0, len(self.store)))
 
     def _record_holdout_loss(self) -> None:
         """Log ``train/model_loss``: the model's mean squared error on held-out transitions."""

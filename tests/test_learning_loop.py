@@ -136,7 +136,8 @@ def test_non_finite_reward_stops_learning(pendulum_kwargs):
 
 
 def test_diverging_model_update_is_undone_and_backed_off(pendulum_kwargs, monkeypatch):
-    model = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=0, **pendulum_kwargs)
+    sgd = {**pendulum_kwargs["model_update"], "method": "sgd"}  # the guard of the SGD update
+    model = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=0, **{**pendulum_kwargs, "model_update": sgd})
     model.set_logger(configure(None, []))
     model.learn(200)
     weights = model.dynamics.weights.clone()

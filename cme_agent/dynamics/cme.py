@@ -283,22 +283,30 @@ class CMEDynamics(nn.Module):
                 psi = kernel_from_points(points[rows], weights, out=buffer[: len(step_targets)])
                 sgd_step(self.weights, psi, step_targets, learning_rate, l2)
 
-    def refit_weights(self, batch: Transitions, l2: float) -> None:
+    def refit_weights(self, batch: Transitions, l2: float) -> float:
         """B by ridge regression on a batch, ``B^T = (Psi^T Psi + (N l2 + eps) I)^{-1} Psi^T Y``
         (loss (4) with the ridge of eq. (6)), the normal equations accumulated in float64 a
         block of rows at a time (eps = 1e-6 of their mean diagonal keeps the solve defined).
 
         :param batch: N transitions (e.g. a sample of D)
         :param l2: ridge coefficient lambda
+        :return: the new B's mean squared residual on the batch, (1/N) sum_i ||y_i - B psi_i||^2,
+            from the same sums: ``(sum ||y||^2 - 2 <B, Y^T Psi> + <B Psi^T Psi, B>) / N``
         """
         gram = self.weights.new_zeros(self.q, self.q, dtype=torch.float64)
         cross = self.weights.new_zeros(self.q, self.weights.shape[0], dtype=torch.float64)
+        target_energy = 0.0
         for start in range(0, len(batch), REFIT_ROWS):
             psi, targets = self.regression_data(batch[start : start + REFIT_ROWS])
             gram += (psi.T @ psi).double()
             cross += (psi.T @ targets).double()
-        gram.diagonal().add_(len(batch) * l2 + 1e-6 * float(gram.diagonal().mean().clamp_min(1e-12)))
-        self.weights = torch.linalg.solve(gram, cross).T.to(self.weights)
+            target_energy += float(targets.double().square().sum())
+        system = gram.clone()
+        system.diagonal().add_(len(batch) * l2 + 1e-6 * float(gram.diagonal().mean().clamp_min(1e-12)))
+        solution = torch.linalg.solve(system, cross)  # (q, p_out): B^T
+        self.weights = solution.T.to(self.weights)
+        residual = target_energy - 2 * float((solution * cross).sum()) + float((solution * (gram @ solution)).sum())
+        return max(residual, 0.0) / len(batch)
 
     def expand_observation_box(
         self,
