@@ -152,7 +152,7 @@ class PersistenceMixin:
         tensors = tensors_from_bytes(members[TENSORS])
         observation_space = space_from_dict(meta["observation_space"])
         action_space = space_from_dict(meta["action_space"])
-        init = cls._merge_unsaved(meta["init"], kwargs)
+        init = cls._merge_unsaved(_as_trained(meta["init"]), kwargs)
         if env is not None:
             env = cls._wrap_env(env, init.get("verbose", 0))
             check_for_correct_spaces(env, observation_space, action_space)
@@ -209,3 +209,13 @@ class PersistenceMixin:
         if fmt != BUFFER_FORMAT:
             raise ModelFileError(f"{path} is not a cme_agent replay buffer file (format {fmt!r})")
         self._load_buffer_state(tensors_from_bytes(members[BUFFERS]))
+
+
+def _as_trained(init: dict[str, Any]) -> dict[str, Any]:
+    """The saved constructor arguments, completed with the defaults the file was trained under
+    where a later release changed them: a file without ``model_update.method`` (written before
+    it existed) learned B by SGD, which its run continues with."""
+    model_update = init.get("model_update")
+    if isinstance(model_update, dict) and "method" not in model_update:
+        return {**init, "model_update": {**model_update, "method": "sgd"}}
+    return init

@@ -1,12 +1,15 @@
 """save() -> load() after the feature bank has grown."""
 
+import json
 import os
 import stat
+import zipfile
 
 import numpy as np
 import pytest
 
 from cme_agent import CMEPolicyIteration
+from cme_agent.serialization import META
 
 
 def test_save_load_after_growth_gives_identical_actions(tmp_path, pendulum_kwargs):
@@ -26,6 +29,25 @@ def test_save_load_after_growth_gives_identical_actions(tmp_path, pendulum_kwarg
     for name in ("theta_psi", "theta_phi"):
         np.testing.assert_array_equal(getattr(loaded.policy, name).numpy(), getattr(model.policy, name).numpy())
     np.testing.assert_array_equal(loaded.dynamics.weights.numpy(), model.dynamics.weights.numpy())
+
+
+def test_the_model_update_method_survives_save_load_and_older_files_load_as_sgd(tmp_path, pendulum_kwargs):
+    model = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=0, **pendulum_kwargs)
+    model.learn(200)
+    path = tmp_path / "model.zip"
+    model.save(path)
+    assert model.model_update_config.method == "ridge"
+    assert CMEPolicyIteration.load(path).model_update_config.method == "ridge"
+    with zipfile.ZipFile(path) as archive:  # a file written before model_update.method existed
+        members = {member: archive.read(member) for member in archive.namelist()}
+    meta = json.loads(members[META])
+    del meta["init"]["model_update"]["method"]
+    members[META] = json.dumps(meta).encode()
+    older = tmp_path / "older.zip"
+    with zipfile.ZipFile(older, "w") as archive:
+        for member, data in members.items():
+            archive.writestr(member, data)
+    assert CMEPolicyIteration.load(older).model_update_config.method == "sgd"  # what it was trained with
 
 
 def test_loaded_model_keeps_learning(tmp_path, pendulum_kwargs):
