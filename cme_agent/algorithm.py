@@ -8,8 +8,8 @@ Each iteration of :meth:`CMEPolicyIteration.learn` is one pass of Algorithm 1:
 then :meth:`~CMEPolicyIteration.train_iteration` on the new data:
 
 2. :meth:`~CMEPolicyIteration.feature_selection` -- matching pursuit, eq. (5);
-3. :meth:`~CMEPolicyIteration.model_update` -- SGD on the regularised loss, eq. (6) (or its
-   exact minimiser on a fixed-size sample of D);
+3. :meth:`~CMEPolicyIteration.model_update` -- the regularised loss of eq. (6) minimised exactly
+   on a fixed-size sample of D (the default), or the paper's SGD steps on it;
 4. ``evaluation.rounds`` times on a fresh collection C of states:
    :meth:`~CMEPolicyIteration.policy_evaluation` (eq. (7)) and
    :meth:`~CMEPolicyIteration.policy_improvement` (Q smoothing).
@@ -128,7 +128,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
     :param omega: step of the Q smoothing Q_k = (1 - omega) Q_{k-1} + omega Q^_k, in (0, 1]
     :param steps_per_iteration: m, env steps collected per iteration (all envs together)
     :param feature_selection: matching pursuit settings (:class:`FeatureSelectionConfig` or dict)
-    :param model_update: how B is learned: SGD (eq. (6)) or an exact ridge refit (:class:`ModelUpdateConfig` or dict)
+    :param model_update: how B is learned: an exact ridge refit (default) or SGD, eq. (6) (:class:`ModelUpdateConfig` or dict)
     :param evaluation: policy evaluation settings (:class:`EvaluationConfig` or dict)
     :param exploration: behaviour policy settings (:class:`ExplorationConfig` or dict)
     :param improvement: the policy improvement step (:class:`ImprovementConfig` or dict): the
@@ -562,9 +562,10 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         return self.store.get(torch.cat(indices).to(self.device))
 
     def model_update(self) -> None:
-        """Update the CME model B: by default eq. (6), ``n_steps`` SGD steps on minibatches drawn
-        from D; with ``model_update.method="ridge"`` the exact minimiser of the same regularised
-        loss on a fixed-size sample of D (:meth:`refit_sample`), whatever B was before.
+        """Update the CME model B: with ``model_update.method="ridge"`` (the default) the exact
+        minimiser of eq. (6)'s regularised loss on a fixed-size sample of D (:meth:`refit_sample`),
+        whatever B was before; with ``"sgd"`` the paper's update, ``n_steps`` SGD steps of eq. (6)
+        on minibatches drawn from D.
 
         A diverging SGD update (non-finite B, or the loss on a check batch up tenfold) is undone,
         the step size halved for the rest of the run, and a warning issued.
