@@ -217,6 +217,8 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         self.stats_window_size = stats_window_size
         self._behaviour: BehaviourPolicy | None = None
         self._value_weights: torch.Tensor | None = None
+        # (2N, obs_dim) new observations of each successive iteration that outgrew the box so far
+        self._outside_states: list[torch.Tensor] = []
         self.iteration = 0
         self.model_step_scale = 1.0
         if self.env is not None:
@@ -380,8 +382,9 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
     def _fit_observation_box(self, new_data: Transitions) -> None:
         """Observation dims without usable bounds get their box from the data so far (the random
         phase). Later, when more than ``observation.expand_outside`` of an iteration's new
-        observations fall outside it, the box is expanded to cover those new observations (at
-        most ``observation.max_expansions`` times): psi's centres keep their place, B is refit on
+        observations fall outside it in ``observation.expand_after`` successive iterations, the
+        box is expanded to cover those iterations' new observations (at most
+        ``observation.max_expansions`` times): psi's centres keep their place, B is refit on
         a sample of D (:meth:`refit_sample`; after the state reward, with ``state_reward``, on all of D) and planning
         restarts (Q's weights belonged to the old phi). The new observations, not all of D, set
         the expansion: the quantiles of D would leave out a drift that is a small share of D (a
@@ -399,7 +402,12 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             return
         new_states = torch.cat([new_data.obs, new_data.next_obs])
         if encoder.outside_share(new_states) <= config.expand_outside:
+            self._outside_states = []
             return
+        self._outside_states.append(new_states)
+        if len(self._outside_states) < config.expand_after:
+            return
+        new_states, self._outside_states = torch.cat(self._outside_states), []
         config = self.model_update_config
         data = self.store.get(slice(0, len(self.store))) if self.dynamics.fits_state_reward else None
         sample = self.refit_sample()

@@ -488,6 +488,10 @@ class ObservationConfig:
         outside the estimated box (in some estimated dim), the box is expanded to cover those observations, the
         model carried into the new coordinates (psi's centres moved, B refit on D) and planning
         restarted (:meth:`cme_agent.dynamics.CMEDynamics.expand_observation_box`); in (0, 1]
+    :param expand_after: expand only when this many successive iterations had more than
+        ``expand_outside`` of their new observations outside, to cover all of theirs (1: the
+        first such iteration expands it; more: one policy's excursion that the next policy
+        does not repeat leaves the box, and phi's resolution, as they are)
     :param max_expansions: at most this many expansions per run (0: the first box is final)
     """
 
@@ -498,6 +502,7 @@ class ObservationConfig:
     margin: float = 0.1
     max_half_range: float = 1e3
     expand_outside: float = 0.05
+    expand_after: int = 1
     max_expansions: int = 4
 
     def __post_init__(self) -> None:
@@ -527,6 +532,12 @@ class ObservationConfig:
         check_non_negative("observation.margin", self.margin)
         check_positive("observation.max_half_range", self.max_half_range)
         check_unit_interval("observation.expand_outside", self.expand_outside, open_low=True)
+        check(
+            "observation.expand_after",
+            self.expand_after,
+            isinstance(self.expand_after, int) and not isinstance(self.expand_after, bool) and self.expand_after >= 1,
+            "an integer >= 1",
+        )
         check(
             "observation.max_expansions",
             self.max_expansions,

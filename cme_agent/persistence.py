@@ -94,6 +94,8 @@ class PersistenceMixin:
             state["behaviour"] = self._behaviour.state_dict()
         if self._value_weights is not None:
             state["value_weights"] = self._value_weights  # the warm start of evaluation.solver=gd
+        if self._outside_states:
+            state["outside_states"] = self._outside_states  # a pending expansion (observation.expand_after)
         if include_buffers:
             state["buffers"] = self._buffer_state()
         return state
@@ -184,6 +186,7 @@ class PersistenceMixin:
             self.policy.load_state_dict(tensors["policy"], strict=True)  # resizes the grown tensors to the saved q
             self._torch_rng.set_state(tensors["torch_rng"])
             self._value_weights = tensors.get("value_weights")
+            self._outside_states = list(tensors.get("outside_states", []))
             self._np_rng.bit_generator.state = numpy_rng
         except (RuntimeError, KeyError, TypeError, ValueError) as error:
             raise ModelFileError(f"the model file does not match its own description: {error}") from error
