@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 from gymnasium import spaces
+from stable_baselines3.common.logger import configure
 
 from cme_agent import CMEPolicyIteration
 from cme_agent.buffer import Transitions
@@ -142,7 +143,10 @@ def test_no_expansion_when_disabled_or_bounds_are_given():
     assert int(given.dynamics.obs_encoder.expansions) == 0
 
 
-@pytest.mark.parametrize("key, value", [("expand_outside", 0.0), ("expand_outside", 1.5), ("max_expansions", -1)])
+@pytest.mark.parametrize(
+    "key, value",
+    [("expand_outside", 0.0), ("expand_outside", 1.5), ("max_expansions", -1), ("expand_after", 0), ("expand_after", 1.5)],
+)
 def test_invalid_expansion_settings_name_the_key(key, value):
     with pytest.raises(ValueError, match=f"observation.{key}"):
         ObservationConfig(**{key: value})
@@ -167,3 +171,40 @@ def test_an_expansion_covers_the_new_observations_that_triggered_it():
     model._fit_observation_box(drift)
     assert int(encoder.expansions) == 1
     assert encoder.outside_share(new_states) == 0.0
+
+
+def _shifted(batch: Transitions, shift: torch.Tensor) -> Transitions:
+    return Transitions(batch.obs + shift, batch.actions, batch.rewards, batch.next_obs + shift, batch.terminated)
+
+
+def test_with_expand_after_one_excursion_leaves_the_box_and_successive_ones_expand_it(tmp_path: Path):
+    """``observation.expand_after=2``: an iteration that outgrows the box, followed by one that
+    stays inside, changes nothing; two in a row expand it to cover both, also across save/load."""
+    kwargs = {**SMALL, "policy_kwargs": {"observation": {"expand_after": 2}}}
+    model = CMEPolicyIteration("CMEPolicy", Drifting(), seed=0, **kwargs)
+    model.learn(100)  # the random phase: the box is fitted on it
+    encoder = model.dynamics.obs_encoder
+    early = model.store.get(slice(0, len(model.store)))[:50]
+    half_range = encoder.half_range.clone()
+    right = _shifted(early, torch.tensor([3.0, 0.0]) * half_range)
+    left = _shifted(early, torch.tensor([-5.0, 0.0]) * half_range)
+
+    model._fit_observation_box(right)
+    model._fit_observation_box(early)  # back inside: the excursion is forgotten
+    model._fit_observation_box(right)
+    assert int(encoder.expansions) == 0 and torch.equal(encoder.half_range, half_range)
+
+    model.save(tmp_path / "pending.zip", include=["replay_buffer"])
+    loaded = CMEPolicyIteration.load(tmp_path / "pending.zip", env=Drifting())
+    loaded.set_logger(configure(None, []))  # what learn() would set up
+    for agent in (model, loaded):
+        agent._fit_observation_box(left)  # the second in a row: covers both excursions
+        box = agent.dynamics.obs_encoder
+        assert int(box.expansions) == 1
+        assert box.outside_share(torch.cat([right.obs, right.next_obs, left.obs, left.next_obs])) == 0.0
+    assert torch.equal(loaded.dynamics.obs_encoder.half_range, encoder.half_range)
+
+    default = CMEPolicyIteration("CMEPolicy", Drifting(), seed=0, **SMALL)  # expand_after=1: at once
+    default.learn(100)
+    default._fit_observation_box(_shifted(early, torch.tensor([3.0, 0.0]) * default.dynamics.obs_encoder.half_range))
+    assert int(default.dynamics.obs_encoder.expansions) == 1
