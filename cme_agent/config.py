@@ -490,8 +490,11 @@ class ObservationConfig:
         restarted (:meth:`cme_agent.dynamics.CMEDynamics.expand_observation_box`); in (0, 1]
     :param expand_after: expand only when this many successive iterations had more than
         ``expand_outside`` of their new observations outside, to cover all of theirs (1: the
-        first such iteration expands it; more: one policy's excursion that the next policy
-        does not repeat leaves the box, and phi's resolution, as they are)
+        first such iteration expands it; 2, the default: one policy's excursion that the next
+        policy does not repeat leaves the box, and phi's resolution, as they are. Measured
+        against 1, docs/results.md: InvertedPendulum-v5 612.4 against 403.4 over 10 seeds at
+        5,000 steps, the point-goal env's worst seed -55 against -170 at 20,000, Acrobot-v1
+        and Reacher-v5 alike)
     :param max_expansions: at most this many expansions per run (0: the first box is final)
     """
 
@@ -502,7 +505,7 @@ class ObservationConfig:
     margin: float = 0.1
     max_half_range: float = 1e3
     expand_outside: float = 0.05
-    expand_after: int = 1
+    expand_after: int = 2
     max_expansions: int = 4
 
     def __post_init__(self) -> None:

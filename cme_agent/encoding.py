@@ -117,7 +117,8 @@ class ObservationEncoder(torch.nn.Module):
         q = self.config.quantile
         return (
             f"observation box estimated from {obs.shape[0]} observations (quantiles {q:g}..{1 - q:g}, "
-            f"margin {self.config.margin:g}) for dims {self._describe()}; expanded if later data falls outside "
+            f"margin {self.config.margin:g}) for dims {self._describe()}; expanded if the data of "
+            f"observation.expand_after={self.config.expand_after} successive iterations falls outside "
             f"(at most observation.max_expansions={self.config.max_expansions} times); "
             f"to give it yourself pass {PYTHON_BOUNDS_HINT}"
         )

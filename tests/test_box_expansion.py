@@ -168,7 +168,8 @@ def test_an_expansion_covers_the_new_observations_that_triggered_it():
     model.store.add(drift.obs, drift.actions, drift.rewards, drift.next_obs, drift.terminated)
     new_states = torch.cat([drift.obs, drift.next_obs])
     assert encoder.outside_share(new_states) == 1.0
-    model._fit_observation_box(drift)
+    for _ in range(model.dynamics.obs_encoder.config.expand_after):  # the drift persists
+        model._fit_observation_box(drift)
     assert int(encoder.expansions) == 1
     assert encoder.outside_share(new_states) == 0.0
 
@@ -178,10 +179,10 @@ def _shifted(batch: Transitions, shift: torch.Tensor) -> Transitions:
 
 
 def test_with_expand_after_one_excursion_leaves_the_box_and_successive_ones_expand_it(tmp_path: Path):
-    """``observation.expand_after=2``: an iteration that outgrows the box, followed by one that
+    """``observation.expand_after=2`` (the default): an iteration that outgrows the box, followed by one that
     stays inside, changes nothing; two in a row expand it to cover both, also across save/load."""
-    kwargs = {**SMALL, "policy_kwargs": {"observation": {"expand_after": 2}}}
-    model = CMEPolicyIteration("CMEPolicy", Drifting(), seed=0, **kwargs)
+    model = CMEPolicyIteration("CMEPolicy", Drifting(), seed=0, **SMALL)
+    assert model.dynamics.obs_encoder.config.expand_after == 2
     model.learn(100)  # the random phase: the box is fitted on it
     encoder = model.dynamics.obs_encoder
     early = model.store.get(slice(0, len(model.store)))[:50]
@@ -204,7 +205,7 @@ def test_with_expand_after_one_excursion_leaves_the_box_and_successive_ones_expa
         assert box.outside_share(torch.cat([right.obs, right.next_obs, left.obs, left.next_obs])) == 0.0
     assert torch.equal(loaded.dynamics.obs_encoder.half_range, encoder.half_range)
 
-    default = CMEPolicyIteration("CMEPolicy", Drifting(), seed=0, **SMALL)  # expand_after=1: at once
-    default.learn(100)
-    default._fit_observation_box(_shifted(early, torch.tensor([3.0, 0.0]) * default.dynamics.obs_encoder.half_range))
-    assert int(default.dynamics.obs_encoder.expansions) == 1
+    at_once = CMEPolicyIteration("CMEPolicy", Drifting(), seed=0, policy_kwargs={"observation": {"expand_after": 1}}, **SMALL)
+    at_once.learn(100)
+    at_once._fit_observation_box(_shifted(early, torch.tensor([3.0, 0.0]) * at_once.dynamics.obs_encoder.half_range))
+    assert int(at_once.dynamics.obs_encoder.expansions) == 1
