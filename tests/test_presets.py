@@ -28,8 +28,9 @@ ENV_IDS = {path.stem: yaml.safe_load(path.read_text())["env"]["id"] for path in 
 
 OLD_OBSERVATION_FACTS = {
     "Pendulum-v1": {"angle_pairs": [[0, 1]]},
-    # since 2026-12 the velocity dims' box is estimated from data (max_half_range below their bounds)
-    "Acrobot-v1": {"angle_pairs": [[0, 1], [2, 3]], "max_half_range": 5.0},
+    # since 2026-12 the velocity dims' box is estimated from data (max_half_range below their bounds),
+    # expanded as soon as an iteration outgrows it
+    "Acrobot-v1": {"angle_pairs": [[0, 1], [2, 3]], "max_half_range": 5.0, "expand_after": 1},
     "CartPole-v1": {"low": [-2.4, -3.0, -0.21, -3.5], "high": [2.4, 3.0, 0.21, 3.5]},
 }
 """The observation facts the library held in code before they moved into the presets."""
