@@ -148,12 +148,14 @@ _PRESETS: dict[str, dict[str, Any]] = {
         "gamma": 0.9,  # dense reward, target ~2 s away: a 2 s horizon (10 steps of 0.2 s) suffices
         "omega": 0.2,  # smoother than 0.5: fewer collapses, not none (results/quadcopter_*.md, figure3.md)
         "steps_per_iteration": 200,  # two 20 s episodes at the 0.2 s agent step
-        # B refit exactly (the library's ridge default, no key here): seeds 4 and 3 end at 0.89 and 0.92
-        # of the controller against 0.75 and 0.85 with the paper's SGD (results/probe_quad_ridge.md)
+        # B refit exactly (the library's ridge default, no key here): figure 3 at 0.89 +- 0.04 of the
+        # controller against SGD's 0.88 +- 0.05, the mean higher at every evaluation from 4,000 steps, also
+        # in an A/B on seeds 10-14 (results/figure3.md, probe_quad_ab_*_s10_14.md)
         "feature_selection": {
             "bandwidths": [0.3, 0.6, 1.2],  # 16-dim inputs: narrower kernels barely overlap
-            # a budget of 4,000 instead of 2,000: 10 seeds end at 0.88 +- 0.05 of the controller, worst 0.75,
-            # against 0.83 +- 0.14, worst 0.50 (the seeds that reached 2,000 fell late; docs/results.md, "Figure 3")
+            # a budget of 4,000 instead of 2,000 (measured with SGD): 10 seeds end at 0.88 +- 0.05 of the
+            # controller, worst 0.75, against 0.83 +- 0.14, worst 0.50 (the seeds that reached 2,000 fell
+            # late; docs/results.md, "Figure 3")
             "max_total_features": 4000,
         },
         "evaluation": {
