@@ -35,10 +35,7 @@ STATES = 2000
 
 def true_reward(env: PointGoal2D, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
     """PointGoal2D's reward of one step from ``obs`` (N, 4) with ``actions`` (N, 2): (N,)."""
-    obs, force = obs.double(), actions.double().clamp(-1.0, 1.0)
-    velocity = env.damping * obs[:, 2:] + env.dt * force
-    position = obs[:, :2] + env.dt * velocity
-    return -(position - torch.as_tensor(env.goal)).norm(dim=1) - 0.05 * (force * force).sum(1)
+    return torch.as_tensor(env.transition(obs.double().numpy(), actions.double().numpy())[1])
 
 
 def model_reward(model: CMEPolicyIteration, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
