@@ -16,7 +16,9 @@ over the observation box, the rest from D) and takes the agent's greedy policy p
   agent's candidate actions, on the model's w and on the true w. Agent -> lookahead on the model's
   w: what the model's error costs in the improvement step; lookahead on the model's w -> on the true
   w: what it costs in the evaluation step; the true w's return is what this phi, C and candidate
-  set can do from pi in one round of policy iteration with a perfect model;
+  set can do from pi in one round of policy iteration with a perfect model, and
+  ``return_true_iterated`` what they do after ``--rounds`` more rounds on the true dynamics (each
+  round evaluates the lookahead policy of the last w on C by eq. (7), as the agent's rounds do);
 - **model error** on C at pi's actions, apart on C's uniform and data parts: the mean of
   |E_model[phi(S')] - phi(s')| over the mean true change |phi(s') - phi(s)|, and the RMS error of
   the model's reward.
@@ -48,6 +50,7 @@ METRICS = (
     "return_agent",
     "return_lookahead_model_w",
     "return_lookahead_true_w",
+    "return_true_iterated",
     "r2_model_w",
     "r2_true_w",
     "phi_error_uniform",
@@ -102,15 +105,36 @@ def monte_carlo_values(agent: CMEPolicyIteration, states: np.ndarray, horizon: i
     return values
 
 
+def true_policy_iteration(
+    agent: CMEPolicyIteration, states: np.ndarray, phi: torch.Tensor, weights: torch.Tensor, rounds: int
+) -> torch.Tensor:
+    """``rounds`` rounds of policy iteration on the true dynamics from value weights w: each the
+    lookahead policy of w on C, evaluated by eq. (7) on its true transitions.
+
+    :param states: (|C|, 4) the collection C
+    :param phi: (|C|, p) phi of C
+    :param weights: (p,) the first w
+    :return: (p,) the last w
+    """
+    env, blocks = PointGoal2D(), np.array_split(states, max(1, len(states) // 1000))  # (1000 * K, p) at a time
+    for _ in range(rounds):
+        policy = Lookahead(agent, weights)
+        actions = np.concatenate([policy.predict(block)[0] for block in blocks])
+        successors, rewards = env.transition(states, actions.astype(np.float64))
+        rewards = torch.as_tensor(rewards, dtype=torch.float32)
+        weights = bellman_residual_weights(phi, phi_of(agent, successors), rewards, agent.gamma, agent.evaluation_config.l2)
+    return weights
+
+
 def r_squared(weights: torch.Tensor, phi: torch.Tensor, targets: np.ndarray) -> float:
     """R^2 of <w, phi(s)> against ``targets``: (p,), (N, p), (N,)."""
     residual = (phi @ weights).numpy().astype(np.float64) - targets
     return float(1.0 - (residual**2).mean() / targets.var())
 
 
-def run_seed(job: tuple[int, int, dict[str, Any]]) -> dict[str, Any]:
-    """Train one agent and measure it: (seed, steps, kwargs) -> its row."""
-    seed, steps, kwargs = job
+def run_seed(job: tuple[int, int, dict[str, Any], int]) -> dict[str, Any]:
+    """Train one agent and measure it: (seed, steps, kwargs, rounds) -> its row."""
+    seed, steps, kwargs, rounds = job
     torch.set_num_threads(1)
     agent = CMEPolicyIteration("CMEPolicy", CUSTOM_ENV, seed=seed, **kwargs).learn(steps)
     dynamics, gamma, l2 = agent.dynamics, agent.gamma, agent.evaluation_config.l2
@@ -129,6 +153,7 @@ def run_seed(job: tuple[int, int, dict[str, Any]]) -> dict[str, Any]:
             "model_w": bellman_residual_weights(phi, model_next, model_rewards, gamma, l2),
             "true_w": bellman_residual_weights(phi, true_next, true_rewards, gamma, l2),
         }
+        iterated = true_policy_iteration(agent, states, phi, weights["true_w"], rounds)
     values = monte_carlo_values(agent, states, math.ceil(math.log(1e-3) / math.log(gamma)))
     eval_env = make_vec_env(CUSTOM_ENV, n_envs=1, seed=seed + EVAL_SEED_OFFSET)
     row: dict[str, Any] = {"seed": seed, "q": dynamics.q, "C": len(states)}
@@ -137,6 +162,8 @@ def run_seed(job: tuple[int, int, dict[str, Any]]) -> dict[str, Any]:
         eval_env.seed(seed + EVAL_SEED_OFFSET)
         row[f"return_lookahead_{name}"] = evaluate(Lookahead(agent, w), eval_env, EVAL_EPISODES)["return_mean"]
         row[f"r2_{name}"] = r_squared(w, phi, values)
+    eval_env.seed(seed + EVAL_SEED_OFFSET)
+    row["return_true_iterated"] = evaluate(Lookahead(agent, iterated), eval_env, EVAL_EPISODES)["return_mean"]
     n_uniform = round(agent.evaluation_config.uniform_fraction * len(states))
     errors = (model_next - true_next).norm(dim=1)
     changes = (true_next - phi).norm(dim=1)
@@ -153,11 +180,14 @@ def main() -> None:
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--steps", type=int, default=5000, help="env steps of training before the measurement")
     parser.add_argument("--kwargs", default="{}", help="constructor arguments as JSON (default: none)")
+    parser.add_argument(
+        "--rounds", type=int, default=5, help="rounds of policy iteration on the true dynamics after the first"
+    )
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--stem", default="true_dynamics_planning")
     args = parser.parse_args()
     kwargs = json.loads(args.kwargs)
-    jobs = [(seed, args.steps, kwargs) for seed in args.seeds]
+    jobs = [(seed, args.steps, kwargs, args.rounds) for seed in args.seeds]
     with multiprocessing.get_context("spawn").Pool(min(args.workers, len(jobs))) as pool:
         rows = pool.map(run_seed, jobs)
     header = ["seed", "q", "C", *METRICS]
@@ -173,7 +203,9 @@ def main() -> None:
         f"return ({EVAL_EPISODES} episodes, env seeded seed + {EVAL_SEED_OFFSET:,}); return_lookahead_model_w / "
         "_true_w: the one-step lookahead through the true dynamics over the agent's candidates on the value "
         "weights of pi solved by eq. (7) through the model / through the true next states and rewards (same "
-        "C, same ridge); r2_*: those values against the Monte-Carlo value of pi on C; phi_error_*: mean "
+        f"C, same ridge); return_true_iterated: the same lookahead after {args.rounds} more rounds of policy "
+        "iteration on the true dynamics (each round's lookahead policy evaluated on C by eq. (7)); "
+        "r2_*: those values against the Monte-Carlo value of pi on C; phi_error_*: mean "
         "|E_model[phi(S')] - phi(s')| over mean |phi(s') - phi(s)| on C's uniform / data part at pi's "
         "actions; reward_rmse_*: RMS error of the model's reward there.\n\n" + markdown_table(header, table) + "\n"
     )

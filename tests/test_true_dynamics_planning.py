@@ -20,6 +20,7 @@ import true_dynamics_planning as tdp  # noqa: E402
 from unseen_envs import CUSTOM_ENV, PointGoal2D  # noqa: E402
 
 from cme_agent import CMEPolicyIteration  # noqa: E402
+from cme_agent.planning import bellman_residual_weights  # noqa: E402
 
 
 def _states(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -68,6 +69,27 @@ def test_lookahead_is_the_one_step_backup_through_the_env(scale: float) -> None:
         assert len({tuple(a) for a in chosen}) > 1
 
 
+def test_true_policy_iteration_evaluates_each_rounds_lookahead_policy() -> None:
+    agent = CMEPolicyIteration("CMEPolicy", CUSTOM_ENV, seed=0)
+    agent.dynamics.obs_encoder.fit(torch.randn(200, 4))
+    states = _states(np.random.default_rng(3), 40)
+    phi = tdp.phi_of(agent, states)
+    weights = torch.randn(agent.dynamics.p, generator=torch.Generator().manual_seed(4))
+    assert torch.equal(tdp.true_policy_iteration(agent, states, phi, weights, 0), weights)
+    expected = weights
+    for _ in range(2):  # by hand: the lookahead's actions, their true transitions, eq. (7)
+        actions, _ = tdp.Lookahead(agent, expected).predict(states)
+        successors, rewards = PointGoal2D().transition(states, actions.astype(np.float64))
+        expected = bellman_residual_weights(
+            phi,
+            tdp.phi_of(agent, successors),
+            torch.as_tensor(rewards, dtype=torch.float32),
+            agent.gamma,
+            agent.evaluation_config.l2,
+        )
+    torch.testing.assert_close(tdp.true_policy_iteration(agent, states, phi, weights, 2), expected)
+
+
 def test_rows_of_a_short_run() -> None:
     kwargs = {
         "steps_per_iteration": 100,
@@ -75,7 +97,7 @@ def test_rows_of_a_short_run() -> None:
         "evaluation": {"collection_size": 300, "rounds": 2},
         "feature_selection": {"subsample_size": 300, "max_features": 20},
     }
-    row = tdp.run_seed((0, 300, kwargs))
+    row = tdp.run_seed((0, 300, kwargs, 2))
     assert row["seed"] == 0 and row["C"] == 300 and 0 < row["q"]
     for key in tdp.METRICS:
         assert math.isfinite(row[key])
