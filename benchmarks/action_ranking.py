@@ -22,14 +22,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing
-import statistics
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 import torch
-from common import command_line, markdown_table, write_markdown
+from common import add_seed_arguments, command_line, map_seeds, markdown_table, seed_table, write_markdown
 
 from cme_agent import CMEPolicyIteration
 
@@ -110,31 +108,17 @@ def run_seed(job: tuple[str, int, int, dict[str, Any], int, int, float]) -> dict
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="InvertedPendulum-v5", help="a MuJoCo env id with a Box action space")
-    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    parser.add_argument("--steps", type=int, default=5000, help="env steps of training before the measurement")
-    parser.add_argument("--kwargs", default="{}", help="constructor arguments as JSON (default: none)")
+    add_seed_arguments(parser, "action_ranking")
     parser.add_argument("--states", type=int, default=300)
     parser.add_argument("--actions", type=int, default=7, help="actions per state, evenly spaced over the box")
     parser.add_argument(
         "--noise", type=float, default=0.25, help="behaviour noise std, as a fraction of the action half-range"
     )
-    parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--stem", default="action_ranking")
     args = parser.parse_args()
     kwargs = json.loads(args.kwargs)
     jobs = [(args.env, seed, args.steps, kwargs, args.states, args.actions, args.noise) for seed in args.seeds]
-    with multiprocessing.get_context("spawn").Pool(min(args.workers, len(jobs))) as pool:
-        rows = pool.map(run_seed, jobs)
-    header = ["seed", "q", *METRICS]
-    table = [[row["seed"], row["q"], *(f"{row[key]:.3f}" for key in METRICS)] for row in rows]
-    if len(rows) > 1:
-        table.append(
-            [
-                "mean +- std",
-                "",
-                *(f"{statistics.mean(r[k] for r in rows):.3f} +- {statistics.stdev(r[k] for r in rows):.3f}" for k in METRICS),
-            ]
-        )
+    rows = map_seeds(run_seed, jobs, args.workers)
+    header, table = ["seed", "q", *METRICS], seed_table(rows, ["seed", "q"], METRICS)
     text = (
         f"# Does the model tell the actions apart? {args.env}\n\n"
         f"Command: `{command_line()}`.\n\n"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import csv
 import functools
 import json
@@ -9,6 +10,7 @@ import multiprocessing
 import os
 import resource
 import shlex
+import statistics
 import subprocess
 import sys
 import time
@@ -65,6 +67,32 @@ def markdown_table(header: list[str], rows: list[list[Any]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]
     return "\n".join(lines)
+
+
+def add_seed_arguments(parser: argparse.ArgumentParser, stem: str) -> None:
+    """The arguments of a benchmark that trains one agent per seed and measures it: ``--seeds``,
+    ``--steps``, ``--kwargs`` (constructor arguments as JSON), ``--workers`` and ``--stem``."""
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    parser.add_argument("--steps", type=int, default=5000, help="env steps of training before the measurement")
+    parser.add_argument("--kwargs", default="{}", help="constructor arguments as JSON (default: none)")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--stem", default=stem)
+
+
+def map_seeds(run_seed: Callable[[Any], dict[str, Any]], jobs: Sequence[Any], workers: int) -> list[dict[str, Any]]:
+    """``run_seed`` (a module-level function) on every job, ``workers`` at a time in fresh processes."""
+    with multiprocessing.get_context("spawn").Pool(min(workers, len(jobs))) as pool:
+        return pool.map(run_seed, jobs)
+
+
+def seed_table(rows: list[dict[str, Any]], columns: Sequence[str], metrics: Sequence[str]) -> list[list[Any]]:
+    """One table row per seed (``columns`` as they are, ``metrics`` to 3 decimals), then, with more
+    than one seed, the metrics' mean +- std over the seeds."""
+    table = [[*(row[key] for key in columns), *(f"{row[key]:.3f}" for key in metrics)] for row in rows]
+    if len(rows) > 1:
+        spread = [f"{statistics.mean(r[k] for r in rows):.3f} +- {statistics.stdev(r[k] for r in rows):.3f}" for k in metrics]
+        table.append(["mean +- std", *([""] * (len(columns) - 1)), *spread])
+    return table
 
 
 def save_record(path: Path, record: dict[str, Any]) -> None:

@@ -33,13 +33,11 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import multiprocessing
-import statistics
 from typing import Any
 
 import numpy as np
 import torch
-from common import command_line, markdown_table, write_markdown
+from common import add_seed_arguments, command_line, map_seeds, markdown_table, seed_table, write_markdown
 from stable_baselines3.common.env_util import make_vec_env
 from unseen_envs import CUSTOM_ENV, EVAL_EPISODES, EVAL_SEED_OFFSET, PointGoal2D, evaluate
 
@@ -177,24 +175,15 @@ def run_seed(job: tuple[int, int, dict[str, Any], int]) -> dict[str, Any]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    parser.add_argument("--steps", type=int, default=5000, help="env steps of training before the measurement")
-    parser.add_argument("--kwargs", default="{}", help="constructor arguments as JSON (default: none)")
+    add_seed_arguments(parser, "true_dynamics_planning")
     parser.add_argument(
         "--rounds", type=int, default=5, help="rounds of policy iteration on the true dynamics after the first"
     )
-    parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--stem", default="true_dynamics_planning")
     args = parser.parse_args()
     kwargs = json.loads(args.kwargs)
-    jobs = [(seed, args.steps, kwargs, args.rounds) for seed in args.seeds]
-    with multiprocessing.get_context("spawn").Pool(min(args.workers, len(jobs))) as pool:
-        rows = pool.map(run_seed, jobs)
-    header = ["seed", "q", "C", *METRICS]
-    table = [[row["seed"], row["q"], row["C"], *(f"{row[key]:.3f}" for key in METRICS)] for row in rows]
-    if len(rows) > 1:
-        spread = [f"{statistics.mean(r[k] for r in rows):.3f} +- {statistics.stdev(r[k] for r in rows):.3f}" for k in METRICS]
-        table.append(["mean +- std", "", "", *spread])
+    rows = map_seeds(run_seed, [(seed, args.steps, kwargs, args.rounds) for seed in args.seeds], args.workers)
+    columns = ["seed", "q", "C"]
+    header, table = [*columns, *METRICS], seed_table(rows, columns, METRICS)
     text = (
         f"# Is it the model or the planner? {CUSTOM_ENV}, the planning step with the true dynamics\n\n"
         f"Command: `{command_line()}`.\n\n"
