@@ -1,0 +1,55 @@
+"""benchmarks/unseen_envs.py's report (no training): a held-out env's saved runs are reported beside
+the suite but kept out of the issue's targets, and the suite's rows are unchanged by them."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+sys.path.insert(0, str(BENCHMARKS))
+
+import unseen_envs  # noqa: E402
+from common import save_record  # noqa: E402
+
+
+def _save_run(out: Path, agent: str, env: str, seed: int, final: float) -> None:
+    job = unseen_envs.Job(agent, env, seed, steps=2_000, eval_every=1_000, out=str(out), command="test")
+    evaluations = [
+        {
+            "steps": steps,
+            "return_mean": value,
+            "return_std": 0.0,
+            "episode_length": 10,
+            "train_seconds": 1.0,
+            "train_cpu_seconds": 1.0,
+            "eval_seconds": 0.1,
+            "peak_rss_mib": 100.0,
+            "n_features": 0,
+        }
+        for steps, value in ((1_000, final - 1.0), (2_000, final))
+    ]
+    record = {"job": vars(job), "commit": "abc1234", "complete": True, "evaluations": evaluations, "peak_rss_mib": 100.0}
+    if agent == "cme":
+        record.update(box_expansions=0, phi_width=1_000, reward_source="learned")
+    save_record(job.path, record)
+
+
+def test_held_out_env_is_reported_but_not_a_target(tmp_path):
+    for seed, final in enumerate((10.0, 20.0)):
+        _save_run(tmp_path, "cme", "Swimmer-v5", seed, final)
+        _save_run(tmp_path, "cme", "Reacher-v5", seed, -final)
+        _save_run(tmp_path, "sac", "Reacher-v5", seed, -5.0)
+    unseen_envs.report(list(unseen_envs.ENVS), 2_000, tmp_path)
+    text = (tmp_path / "unseen_envs.md").read_text()
+    rows = [line for line in text.splitlines() if line.startswith("| Swimmer-v5 | cme |")]
+    assert len(rows) == 1 and "15.0 +- 7.1" in rows[0]
+    targets = text.split("## Targets")[1].split("## Runs")[0]
+    assert "Swimmer" not in targets
+    assert "ahead of SAC at 2,000 steps on Reacher-v5: MISSED (CME -15.0 over 2 seeds, SAC -5.0 over 2)" in targets
+
+
+def test_held_out_env_without_runs_is_left_out(tmp_path):
+    _save_run(tmp_path, "cme", "Reacher-v5", 0, -10.0)
+    unseen_envs.report(list(unseen_envs.ENVS), 2_000, tmp_path)
+    assert "Swimmer" not in (tmp_path / "unseen_envs.md").read_text()
