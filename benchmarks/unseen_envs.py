@@ -448,7 +448,7 @@ def verdicts(complete: dict[tuple[str, str], list[dict[str, Any]]], steps: int) 
 
 
 def plot(complete: dict[tuple[str, str], list[dict[str, Any]]], envs: list[str], out: Path) -> None:
-    """results/unseen_envs.png: one panel per env, each seed thin, the mean thick, random dashed, zero dash-dotted."""
+    """results/unseen_envs.png: a panel per env of ``envs``, each seed thin, the mean thick, random dashed, zero dash-dot."""
     plt = pyplot()
     if plt is None:
         return
@@ -570,7 +570,7 @@ def report(envs: list[str], steps: int, out: Path) -> None:
     )
     print(text)
     (out / "unseen_envs.md").write_text(text)
-    plot(complete, envs, out)
+    plot(complete, [env for env in envs if any(key[0] == env for key in complete)] or envs, out)
 
 
 def main() -> None:
