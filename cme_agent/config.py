@@ -410,18 +410,12 @@ class StateFeatureConfig:
             check_positive("phi.bandwidth", self.bandwidth)
 
 
-AUTO_GRID_SIZES = {1: 3, 2: 5}
-"""``action_search.grid_size`` by the action's dimension where it is not given (see
-``ActionSearchConfig``'s comment for the measurements)."""
-
-
 @dataclass(frozen=True)
 class ActionSearchConfig:
     """How greedy actions are found for Box action spaces (Discrete ones are enumerated).
 
     :param grid_size: candidates per action dimension on a regular grid, used when the action
-        has at most ``max_grid_dims`` dimensions; None: by the action's dimension,
-        ``AUTO_GRID_SIZES`` (3 for one dimension, 5 per dimension for two)
+        has at most ``max_grid_dims`` dimensions
     :param grid_points: the grid's values per action dimension instead, in normalised units
         [-1, 1] (e.g. ``[-1, -0.2, 0, 0.2, 1]``: small actions beside the full push); None: the
         regular grid of ``grid_size``
@@ -431,21 +425,18 @@ class ActionSearchConfig:
     :param refine_lr: step of the refinement, in normalised action units
     """
 
-    # None: 3 candidates for a 1-D action, 5 per dim (25) for a 2-D one (AUTO_GRID_SIZES).
-    # 1-D, 3 (full push either way, or none): the greedy step ranks far-apart actions, where the
+    # 3 per dim (full push either way, or none): the greedy step ranks far-apart actions, where the
     # model's errors matter less than between neighbours of a fine grid. InvertedPendulum-v5, 10
     # seeds, 5,000 steps, gamma 0.95, omega 0.2 (results/probe_ip_g95o2_k*.md,
     # lq_inverted_pendulum_g95_o02.md): 3 candidates 335.8 +- 361.1, 5: 109.5 +- 36.6, 21: 134.3 +-
     # 81.4, 2 (no zero): 109.4 +- 48.7; seeds 10-19: 3 candidates 342.9 +- 322.6, 21: 84.0 +- 26.2.
-    # Pendulum-v1's preset keeps 21 (5 ended at -323 +- 150 there). 2-D, 5 x 5 against 3 x 3, seeds
-    # 0-2, 20,000 steps, unseen-suite protocol (results/unseen_envs_grid5.md,
-    # unseen_envs_reacher_grid5.md, unseen_envs_heldout_grid5.md against the 3 x 3 runs):
-    # PointGoal2D-v0 -27.9 +- 8.9 vs -38.8 +- 4.7 and, held out from the choice, Swimmer-v5 37.9 +-
-    # 2.8 vs 31.4 +- 6.8, both better on every seed; Reacher-v5 -11.4 +- 0.9 vs -12.1 +- 0.8 (both
-    # near doing nothing, -12.3: its control cost wants torques below 0.5) and the held-out
-    # LunarLanderContinuous-v3 -199.5 +- 26.8 vs -174.0 +- 154.7, worst seed -230.3 vs -351.6: level,
-    # both failing (random -197.3, doing nothing -126.6, SAC -62.7).
-    grid_size: int | None = None
+    # Reacher-v5 is worse with 3 (-12.1 vs -8.8, results/unseen_envs.md: its control cost wants small
+    # torques). Pendulum-v1's preset keeps 21 (5 ended at -323 +- 150 there). 2-D actions, 5 x 5
+    # against 3 x 3, 20,000 steps, unseen-suite protocol (results/unseen_envs_*grid5.md): better on
+    # every seed on PointGoal2D-v0 (-27.9 vs -38.8) and the held-out Swimmer-v5 (37.9 vs 31.4, 3
+    # seeds), level on Reacher-v5, worse on the held-out LunarLanderContinuous-v3 (-209.4 vs -151.7,
+    # 4 of 5 seeds): not a default.
+    grid_size: int = 3
     grid_points: tuple[float, ...] | None = None
     max_grid_dims: int = 2
     n_samples: int = 256
@@ -456,8 +447,8 @@ class ActionSearchConfig:
         check(
             "action_search.grid_size",
             self.grid_size,
-            self.grid_size is None or (isinstance(self.grid_size, int) and self.grid_size >= 2),
-            "an integer >= 2 (or null: by the action's dimension)",
+            isinstance(self.grid_size, int) and self.grid_size >= 2,
+            "an integer >= 2",
         )
         if self.grid_points is not None:
             check_list("action_search.grid_points", self.grid_points)
@@ -477,17 +468,6 @@ class ActionSearchConfig:
             "an integer >= 0",
         )
         check_positive("action_search.refine_lr", self.refine_lr)
-
-    def grid_size_for(self, action_dim: int) -> int:
-        """Candidates per dimension of a Box action searched on a grid (``grid_points`` aside).
-
-        :param action_dim: the action's dimension, 1 to ``max_grid_dims``
-        :return: ``grid_size``, or where it is None ``AUTO_GRID_SIZES`` of the dimension (its
-            largest entry beyond)
-        """
-        if self.grid_size is not None:
-            return self.grid_size
-        return AUTO_GRID_SIZES.get(action_dim, max(AUTO_GRID_SIZES.values()))
 
 
 @dataclass(frozen=True)

@@ -168,8 +168,7 @@ class CMEPolicy(BasePolicy):
         dims = encoder.dim
         search = self.action_search
         if dims <= search.max_grid_dims:
-            size = search.grid_size_for(dims)
-            axis = torch.linspace(-1, 1, size) if search.grid_points is None else torch.tensor(search.grid_points)
+            axis = torch.linspace(-1, 1, search.grid_size) if search.grid_points is None else torch.tensor(search.grid_points)
             encoded = torch.tensor(list(itertools.product(axis.tolist(), repeat=dims)), dtype=torch.float32)
         else:
             generator = torch.Generator().manual_seed(self.candidate_seed)

@@ -36,7 +36,6 @@ from cme_agent.config import (
         ),
         (ActionSearchConfig, "action_search", {"grid_points": [0.0, 2.0]}, r"action_search\.grid_points=.*in \[-1, 1\]"),
         (ActionSearchConfig, "action_search", {"grid_points": [0.5, 0.5]}, r"action_search\.grid_points=.*distinct"),
-        (ActionSearchConfig, "action_search", {"grid_size": 1}, r"action_search\.grid_size=1 is invalid: .*or null"),
         (ObservationConfig, "observation", {"low": -1.0, "high": [1.0]}, r"observation\.low=-1\.0 is invalid: must be a list"),
         (ObservationConfig, "observation", {"high": 2}, r"observation\.high=2 is invalid: must be a list"),
         (ObservationConfig, "observation", {"angle_pairs": 0}, r"observation\.angle_pairs=0 is invalid: must be a list"),
