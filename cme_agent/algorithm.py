@@ -550,14 +550,13 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             residual = dynamics.targets(batch) - dynamics.predict(dynamics.psi(z))
             centres = z[: len(new_data)]
             bandwidths = torch.tensor(config.bandwidths, dtype=z.dtype, device=z.device)
-            result = matching_pursuit(
-                dynamics.dictionary(z, centres, bandwidths), residual, config.threshold, budget, config.orthogonal
-            )
-            picked = result.indices
-            dynamics.grow(centres[picked % len(centres)], bandwidths[picked // len(centres)], config.theta * result.weights.T)
+            atoms, columns = dynamics.dictionary(z, centres, bandwidths, config.control_affine)
+            result = matching_pursuit(atoms, residual, config.threshold, budget, config.orthogonal)
+            picked = columns[result.indices]
+            dynamics.grow(picked.centres, picked.bandwidths, config.theta * result.weights.T, picked.action_basis)
             if result.energy_before > 0:
                 self.logger.record("train/mp_residual_reduction", 1 - result.energy_after / result.energy_before)
-            return self._record_features_added(len(picked))
+            return self._record_features_added(len(result.indices))
 
     def _record_features_added(self, added: int) -> int:
         self.logger.record("train/features_added", added)

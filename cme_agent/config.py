@@ -116,6 +116,10 @@ class FeatureSelectionConfig:
         its neighbours: the greedy step ranks actions the data hold few of by a smooth model of
         their effect, not by the kernels of the few actions taken there. A Discrete action's
         one-hot is not scaled (its actions have no neighbours)
+    :param control_affine: add to the dictionary, per new point and bandwidth, the state kernel
+        alone and the state kernel times each normalised action coordinate (for a Discrete
+        action, each one-hot entry): psi can then represent a feature change affine in the
+        action, f(s) + G(s) a, from few atoms, and extends what one action taught to the others
     """
 
     bandwidths: tuple[float, ...] = (0.15, 0.3, 0.6)
@@ -128,6 +132,7 @@ class FeatureSelectionConfig:
     # InvertedPendulum-v5, 5,000 steps, seeds 0-9: 0.2 ends at 448.7 +- 357.5 with 1/10 seeds at 950,
     # 1.0 at 395.9 +- 420.0 with 3/10 (probe_ip_ascale02, probe_ip_expand_new): not the default on an unseen env
     action_scale: float = 1.0
+    control_affine: bool = False
 
     def __post_init__(self) -> None:
         check_list("feature_selection.bandwidths", self.bandwidths)
@@ -141,6 +146,7 @@ class FeatureSelectionConfig:
         check_positive_int("feature_selection.subsample_size", self.subsample_size)
         check_unit_interval("feature_selection.theta", self.theta, open_low=True)
         check_positive("feature_selection.action_scale", self.action_scale)
+        check("feature_selection.control_affine", self.control_affine, isinstance(self.control_affine, bool), "a bool")
 
 
 OFF_DATA_REWARDS = ("least", "zero")

@@ -1,8 +1,15 @@
 """The growing feature bank psi: S x A -> R^q of Gaussian kernels (paper section 2.2).
 
 Feature j is ``psi_j(z) = exp(-||z - c_j||^2 / (2 h_j^2))`` on the normalised state-action
-``z = (z_s, z_a)``. The bank only ever grows by appending, which is what lets the smoothed
-Q weights be zero-padded instead of keeping a history (docs/design.md, "Q needs no history").
+``z = (z_s, z_a)`` (a joint atom, the paper's), or, with control-affine atoms
+(``feature_selection.control_affine``), the state kernel alone,
+``exp(-||z_s - c_s,j||^2 / (2 h_j^2))`` (an atom that ignores the action), or the state kernel
+times one action coordinate, ``exp(-||z_s - c_s,j||^2 / (2 h_j^2)) z_a[i]`` (an atom linear in
+the action): together these represent a feature change affine in the action,
+``f(s) + G(s) a``, the form of most physical control systems, and extend it from the actions
+tried to all others. Every atom factorises, ``psi_j(s, a) = S_j(s) A_j(a)``. The bank only ever
+grows by appending, which is what lets the smoothed Q weights be zero-padded instead of
+keeping a history (docs/design.md, "Q needs no history").
 """
 
 from __future__ import annotations
@@ -19,6 +26,12 @@ values cannot see them (its rounding is ~1e-7 of the largest), and the cut keeps
 every product of two values (the factorised psi) and their products with the model's weights
 clear of denormal floats, on which ``exp``, elementwise products and GEMMs run 10-30x slower."""
 _CUTOFF_VALUE = math.exp(CUTOFF_EXPONENT)
+
+JOINT = -1
+"""``action_basis`` code of a joint Gaussian atom on (z_s, z_a), the paper's."""
+STATE_ONLY = -2
+"""``action_basis`` code of an atom that is the state kernel alone (A_j(a) = 1)."""
+# a code i >= 0: the state kernel times the action coordinate z_a[i] (A_j(a) = z_a[i])
 
 
 def gaussian_kernel(
@@ -73,7 +86,9 @@ def kernel_from_points(points: torch.Tensor, weights: torch.Tensor, out: torch.T
 class KernelBank(nn.Module):
     """psi as an ``nn.Module`` whose size q grows by :meth:`append`.
 
-    Loading a state dict resizes the bank to the saved q, so a bank always loads whole.
+    Each atom has a centre, a bandwidth and an action basis code (:data:`JOINT`,
+    :data:`STATE_ONLY`, or i >= 0 for the state kernel times z_a[i]). Loading a state dict
+    resizes the bank to the saved q, so a bank always loads whole.
 
     :param state_dim: width of the normalised state part z_s
     :param action_dim: width of the normalised action part z_a
@@ -84,6 +99,7 @@ class KernelBank(nn.Module):
         self.state_dim = state_dim
         self.register_buffer("centres", torch.zeros(0, state_dim + action_dim))
         self.register_buffer("inv_two_sq_bandwidth", torch.ones(0))
+        self.register_buffer("action_basis", torch.zeros(0, dtype=torch.long))
         self.version = 0  # changes whenever the features' tensors change (append, load, to): caches key on it
         self._parameters_cache: dict[str, tuple[int, torch.Tensor]] = {}
 
@@ -99,7 +115,33 @@ class KernelBank(nn.Module):
         :param out: (N, q) buffer to write into, or None
         :return: (N, q)
         """
-        return gaussian_kernel(z, self.centres, self.inv_two_sq_bandwidth, out)
+        return self.from_points(self.points(z), out)
+
+    def points(self, z: torch.Tensor) -> torch.Tensor:
+        """The operand of psi's GEMM that depends on the points, (N, d) -> (N, d + 3),
+        ``[z_s, ||z_s||^2, z_a, ||z_a||^2, 1]`` (the two norms apart: an atom that ignores the
+        action weighs the second by 0)."""
+        z_s, z_a = z[:, : self.state_dim], z[:, self.state_dim :]
+        squares = [(part * part).sum(1, keepdim=True) for part in (z_s, z_a)]
+        return torch.cat([z_s, squares[0], z_a, squares[1], torch.ones_like(z[:, :1])], dim=1)
+
+    def from_points(self, points: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
+        """psi from :meth:`points`: one GEMM with :meth:`weights`, ``exp``, then the atoms linear
+        in the action times their coordinate.
+
+        :param points: (N, d + 3)
+        :param out: (N, q) buffer to write into, or None
+        :return: (N, q)
+        """
+        psi = kernel_from_points(points, self.weights(), out)
+        linear = self._linear_atoms()
+        if linear is None:
+            return psi
+        columns, coordinates = linear
+        if psi.requires_grad:  # exp's backward reads its output: multiply a copy
+            psi = psi.clone()
+        psi[:, columns] *= points[:, self.state_dim + 1 + coordinates]
+        return psi
 
     def state_factor(self, z_state: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
         """S (N, q): the state factor of psi, psi_j(s, a) = S[n, j] * A[k, j] (a Gaussian on a
@@ -112,31 +154,70 @@ class KernelBank(nn.Module):
 
     def state_weights(self) -> torch.Tensor:
         """The (state_dim + 2, q) operand of the state factor (:func:`kernel_parameters`), kept until the bank changes."""
-        return self._cached_parameters("state", self.centres[:, : self.state_dim])
+        return self._cached("state", lambda: kernel_parameters(self.centres[:, : self.state_dim], self.inv_two_sq_bandwidth))
 
     def weights(self) -> torch.Tensor:
-        """The (state_dim + action_dim + 2, q) operand of psi (:func:`kernel_parameters`), kept until the bank changes."""
-        return self._cached_parameters("full", self.centres)
+        """The (state_dim + action_dim + 3, q) operand of psi for :meth:`points`, kept until the bank changes:
+        ``[2 a c_s; 2 a m c_a; -a; -a m; -a (||c_s||^2 + m ||c_a||^2)]``, m = 1 for a joint atom, else 0."""
 
-    def _cached_parameters(self, name: str, centres: torch.Tensor) -> torch.Tensor:
+        def build() -> torch.Tensor:
+            a = self.inv_two_sq_bandwidth
+            joint = (self.action_basis == JOINT).to(a)
+            state, action = self.centres[:, : self.state_dim], self.centres[:, self.state_dim :]
+            rows = [
+                2 * a[:, None] * state,
+                -a[:, None],
+                2 * (a * joint)[:, None] * action,
+                -(a * joint)[:, None],
+                (-a * ((state * state).sum(1) + joint * (action * action).sum(1)))[:, None],
+            ]
+            return torch.cat(rows, dim=1).T.contiguous()
+
+        return self._cached("full", build)
+
+    def _cached(self, name: str, build: Any) -> torch.Tensor:
         cached = self._parameters_cache.get(name)
         if cached is None or cached[0] != self.version:
-            cached = (self.version, kernel_parameters(centres, self.inv_two_sq_bandwidth))
+            cached = (self.version, build())
             self._parameters_cache[name] = cached
         return cached[1]
 
-    def action_factor(self, z_action: torch.Tensor) -> torch.Tensor:
-        """A (K, q): the action factor of psi. :param z_action: (K, action_dim) normalised actions."""
-        return gaussian_kernel(z_action, self.centres[:, self.state_dim :], self.inv_two_sq_bandwidth)
+    def _linear_atoms(self) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The columns of the atoms linear in the action and their action coordinates, or None if there are none."""
 
-    def append(self, centres: torch.Tensor, bandwidths: torch.Tensor) -> None:
+        def build() -> torch.Tensor:
+            return torch.nonzero(self.action_basis >= 0).flatten()
+
+        columns = self._cached("linear", build)
+        if len(columns) == 0:
+            return None
+        return columns, self.action_basis[columns]
+
+    def action_factor(self, z_action: torch.Tensor) -> torch.Tensor:
+        """A (K, q): the action factor of psi (a Gaussian for a joint atom, 1 for an atom that
+        ignores the action, z_a[i] for one linear in it). :param z_action: (K, action_dim) normalised actions."""
+        joint = (self.action_basis == JOINT).to(self.inv_two_sq_bandwidth)
+        factor = gaussian_kernel(z_action, self.centres[:, self.state_dim :], self.inv_two_sq_bandwidth * joint)
+        linear = self._linear_atoms()
+        if linear is None:
+            return factor
+        columns, coordinates = linear
+        if factor.requires_grad:
+            factor = factor.clone()
+        factor[:, columns] = z_action[:, coordinates]
+        return factor
+
+    def append(self, centres: torch.Tensor, bandwidths: torch.Tensor, action_basis: torch.Tensor | None = None) -> None:
         """Append features.
 
         :param centres: (l, state_dim + action_dim) new centres in normalised units
         :param bandwidths: (l,) their bandwidths h
+        :param action_basis: (l,) their action basis codes (None: all :data:`JOINT`)
         """
+        basis = torch.full((len(centres),), JOINT, dtype=torch.long) if action_basis is None else action_basis
         self.centres = torch.cat([self.centres, centres.to(self.centres)])
         self.inv_two_sq_bandwidth = torch.cat([self.inv_two_sq_bandwidth, (1 / (2 * bandwidths**2)).to(self.centres)])
+        self.action_basis = torch.cat([self.action_basis, basis.to(self.action_basis)])
         self.version += 1
 
     def move_states(self, scale: torch.Tensor, shift: torch.Tensor) -> None:
@@ -156,7 +237,10 @@ class KernelBank(nn.Module):
         return super()._apply(fn, recurse)
 
     def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
-        resize_buffers(self, state_dict, prefix, {"centres": 0, "inv_two_sq_bandwidth": 0})
+        centres = state_dict.get(prefix + "centres")
+        if isinstance(centres, torch.Tensor) and prefix + "action_basis" not in state_dict:  # saved before the codes
+            state_dict[prefix + "action_basis"] = torch.full((len(centres),), JOINT, dtype=torch.long)
+        resize_buffers(self, state_dict, prefix, {"centres": 0, "inv_two_sq_bandwidth": 0, "action_basis": 0})
         self.version += 1
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 

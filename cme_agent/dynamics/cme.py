@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -44,7 +45,7 @@ from cme_agent.config import (
 )
 from cme_agent.dynamics.sgd import sgd_step
 from cme_agent.encoding import ActionEncoder, ObservationEncoder
-from cme_agent.kernel_bank import KernelBank, gaussian_kernel, kernel_from_points, kernel_points, resize_buffers
+from cme_agent.kernel_bank import JOINT, STATE_ONLY, KernelBank, resize_buffers
 from cme_agent.rewards import RewardSpec
 from cme_agent.state_features import make_state_features
 
@@ -61,6 +62,18 @@ REFIT_ROWS = 4096
 
 MAX_STATE_REWARD_WIDTH = 4096
 """Widest phi whose state reward is fit: its normal equations are a p^2 float64 matrix (128 MiB here)."""
+
+
+@dataclass
+class Dictionary:
+    """What each column of :meth:`CMEDynamics.dictionary` is: (c, d) centres, (c,) bandwidths, (c,) action basis codes."""
+
+    centres: torch.Tensor
+    bandwidths: torch.Tensor
+    action_basis: torch.Tensor
+
+    def __getitem__(self, index: torch.Tensor) -> Dictionary:
+        return Dictionary(self.centres[index], self.bandwidths[index], self.action_basis[index])
 
 
 def _zero_reward(obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
@@ -272,7 +285,7 @@ class CMEDynamics(nn.Module):
         :param learning_rate: normalised step in (0, 2) (see :func:`~cme_agent.dynamics.sgd.sgd_step`)
         :param l2: ridge coefficient lambda
         """
-        points, weights = kernel_points(self.encode(batches.obs, batches.actions)), self.psi.weights()
+        points = self.psi.points(self.encode(batches.obs, batches.actions))
         buffer = self.weights.new_empty(min(batch_size, len(batches)), self.q)
         span = batch_size * max(1, TARGET_ELEMENTS // (batch_size * self.weights.shape[0]))  # bounded memory for wide phi
         for start in range(0, len(batches), span):
@@ -280,7 +293,7 @@ class CMEDynamics(nn.Module):
             for step in range(0, len(targets), batch_size):
                 step_targets = targets[step : step + batch_size]
                 rows = slice(start + step, start + step + len(step_targets))
-                psi = kernel_from_points(points[rows], weights, out=buffer[: len(step_targets)])
+                psi = self.psi.from_points(points[rows], out=buffer[: len(step_targets)])
                 sgd_step(self.weights, psi, step_targets, learning_rate, l2)
 
     def refit_weights(self, batch: Transitions, l2: float) -> float:
@@ -341,26 +354,42 @@ class CMEDynamics(nn.Module):
             self.refit_weights(batch, l2)
         return message
 
-    def dictionary(self, z: torch.Tensor, centres: torch.Tensor, bandwidths: torch.Tensor) -> torch.Tensor:
-        """The candidate atoms of eq. (5): Gaussian kernels centred at ``centres`` at every bandwidth.
+    def dictionary(
+        self, z: torch.Tensor, centres: torch.Tensor, bandwidths: torch.Tensor, control_affine: bool = False
+    ) -> tuple[torch.Tensor, Dictionary]:
+        """The candidate atoms of eq. (5): Gaussian kernels centred at ``centres`` at every
+        bandwidth, and with ``control_affine`` also, per centre and bandwidth, the state kernel
+        alone and the state kernel times each action coordinate (:mod:`cme_agent.kernel_bank`).
 
         :param z: (n, d) normalised state-actions where the atoms are evaluated
         :param centres: (m, d) normalised centres (the new state-actions)
         :param bandwidths: (b,) bandwidths h
-        :return: (n, b * m) atoms; column ``i * m + j`` is centre j at bandwidth i
+        :param control_affine: add the atoms that ignore the action and those linear in it
+        :return: the (n, c) atoms and what each column is (:class:`Dictionary`)
         """
-        inv = (1 / (2 * bandwidths**2)).repeat_interleave(len(centres))
-        return gaussian_kernel(z, centres.repeat(len(bandwidths), 1), inv)
+        codes = [JOINT] + ([STATE_ONLY, *range(self.action_encoder.dim)] if control_affine else [])
+        m, b = len(centres), len(bandwidths)
+        columns = Dictionary(
+            centres=centres.repeat(len(codes) * b, 1),
+            bandwidths=bandwidths.repeat_interleave(m).repeat(len(codes)),
+            action_basis=torch.tensor(codes, device=z.device).repeat_interleave(m * b),
+        )
+        bank = KernelBank(self.psi.state_dim, self.action_encoder.dim).to(z)
+        bank.append(columns.centres, columns.bandwidths, columns.action_basis)
+        return bank(z), columns
 
-    def grow(self, centres: torch.Tensor, bandwidths: torch.Tensor, weights: torch.Tensor) -> None:
+    def grow(
+        self, centres: torch.Tensor, bandwidths: torch.Tensor, weights: torch.Tensor, action_basis: torch.Tensor | None = None
+    ) -> None:
         """Append features to psi and their weights to B, B_k = (B_{k-1}, weights): the only
         place q changes.
 
         :param centres: (l, d) normalised centres
         :param bandwidths: (l,) bandwidths
         :param weights: (p_out, l) columns of B for the new features
+        :param action_basis: (l,) the atoms' action basis codes (None: joint Gaussians)
         """
-        self.psi.append(centres, bandwidths)
+        self.psi.append(centres, bandwidths, action_basis)
         self.weights = torch.cat([self.weights, weights.to(self.weights)], dim=1)
 
     def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
