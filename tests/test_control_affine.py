@@ -105,7 +105,7 @@ def _zero_reward(obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
 
 
 def test_the_setting_is_validated_and_reaches_the_bank():
-    with pytest.raises(ValueError, match="feature_selection.control_affine"):
+    with pytest.raises(ValueError, match=r"feature_selection\.control_affine"):
         FeatureSelectionConfig(control_affine="yes")
     agent = CMEPolicyIteration(
         "CMEPolicy", "Pendulum-v1", seed=0, steps_per_iteration=100, feature_selection={"control_affine": True}
