@@ -15,6 +15,7 @@ keeping a history (docs/design.md, "Q needs no history").
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import torch
@@ -161,8 +162,7 @@ class KernelBank(nn.Module):
         ``[2 a c_s; 2 a m c_a; -a; -a m; -a (||c_s||^2 + m ||c_a||^2)]``, m = 1 for a joint atom, else 0."""
 
         def build() -> torch.Tensor:
-            a = self.inv_two_sq_bandwidth
-            joint = (self.action_basis == JOINT).to(a)
+            a, joint = self.inv_two_sq_bandwidth, self._joint()
             state, action = self.centres[:, : self.state_dim], self.centres[:, self.state_dim :]
             rows = [
                 2 * a[:, None] * state,
@@ -175,7 +175,11 @@ class KernelBank(nn.Module):
 
         return self._cached("full", build)
 
-    def _cached(self, name: str, build: Any) -> torch.Tensor:
+    def _joint(self) -> torch.Tensor:
+        """(q,) 1.0 for a joint atom, 0.0 for the others (whose action part is not a Gaussian)."""
+        return (self.action_basis == JOINT).to(self.inv_two_sq_bandwidth)
+
+    def _cached(self, name: str, build: Callable[[], torch.Tensor]) -> torch.Tensor:
         cached = self._parameters_cache.get(name)
         if cached is None or cached[0] != self.version:
             cached = (self.version, build())
@@ -196,8 +200,7 @@ class KernelBank(nn.Module):
     def action_factor(self, z_action: torch.Tensor) -> torch.Tensor:
         """A (K, q): the action factor of psi (a Gaussian for a joint atom, 1 for an atom that
         ignores the action, z_a[i] for one linear in it). :param z_action: (K, action_dim) normalised actions."""
-        joint = (self.action_basis == JOINT).to(self.inv_two_sq_bandwidth)
-        factor = gaussian_kernel(z_action, self.centres[:, self.state_dim :], self.inv_two_sq_bandwidth * joint)
+        factor = gaussian_kernel(z_action, self.centres[:, self.state_dim :], self.inv_two_sq_bandwidth * self._joint())
         linear = self._linear_atoms()
         if linear is None:
             return factor
