@@ -163,7 +163,7 @@ _PRESETS: dict[str, dict[str, Any]] = {
             "max_total_features": 4000,
             # atoms that ignore the commanded velocity and atoms linear in it (the inner loop tracks the
             # command): 10 seeds end at 0.95 +- 0.01 of the controller, worst 0.93, against 0.89 +- 0.04,
-            # worst 0.79 (docs/results.md, "Quadcopter-v0 with control-affine atoms")
+            # worst 0.79, and 0.93 +- 0.03 on fresh seeds 10-14 (docs/results.md, "Control-affine atoms on the quadcopter")
             "control_affine": True,
         },
         "evaluation": {
