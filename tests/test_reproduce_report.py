@@ -98,6 +98,14 @@ def test_full_plan_shares_runs_between_parts_and_has_no_duplicates() -> None:
     assert "cme-pendulum-seed0" in shared and "kernel-mountain_car-seed4" in shared
 
 
+def test_mountain_car_mp_runs_keep_the_papers_sgd_update_and_others_their_config() -> None:
+    sgd = "agent.model_update.method=sgd"
+    assert reproduce.run_overrides(reproduce.Run("cme", "mountain_car", 0, 1000, 100)) == ["agent=cme", sgd]
+    assert reproduce.run_overrides(reproduce.Run("cme", "mountain_car", 0, 1000, 1000, tag="scaling")) == ["agent=cme", sgd]
+    assert reproduce.run_overrides(reproduce.Run("kernel", "mountain_car", 0, 1000, 100)) == ["agent=kernel"]
+    assert reproduce.run_overrides(reproduce.Run("cme", "pendulum", 0, 1000, 100)) == ["agent=cme"]
+
+
 def test_quick_plan_is_shorter_than_the_full_one() -> None:
     quick = {run.name: run for run in reproduce.planned_runs(["figure1"], reproduce.PROFILES["quick"])}
     full = {run.name: run for run in reproduce.planned_runs(["figure1"], reproduce.PROFILES["full"])}
