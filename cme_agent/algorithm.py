@@ -276,7 +276,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
     def _resolve_reward(self) -> tuple[RewardSpec | None, str]:
         """The reward to plan with and its source; a loaded model keeps the source it was trained with."""
         saved_source = getattr(self, "reward_source", None)
-        if saved_source == "learned":
+        if saved_source == "learned" or (self.reward_fn is None and not self.model_update_config.known_reward):
             return None, "learned"
         if saved_source == "user" and self.reward_fn is None:
             raise ValueError("this model was trained with a user-supplied reward: pass reward_fn= to load()")
@@ -739,7 +739,11 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         """Say which preset was applied and which reward the agent plans with."""
         if self.preset_message is not None and self.verbose >= 1:
             self.logger.info(self.preset_message)
-        if self.reward_source == "learned":
+        if self.reward_source == "learned" and not self.model_update_config.known_reward:
+            self.logger.info(
+                f"The reward of env {self._env_name()} is learned by regression on psi (model_update.known_reward=False)."
+            )
+        elif self.reward_source == "learned":
             self.logger.info(
                 f"No reward function is known for env {self._env_name()}: the reward is learned by regression on psi "
                 "(pass reward_fn= for a known one)."

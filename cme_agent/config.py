@@ -189,6 +189,12 @@ class ModelUpdateConfig:
         of the first feature-selection batch (the worst cost seen where rewards are costs; 0,
         as with ``"zero"``, where they are alive bonuses), or ``"zero"`` (the row regresses the
         reward itself)
+    :param known_reward: plan with the reward the agent knows (the env id's exact spec of
+        :mod:`cme_agent.rewards`, or the env's ``reward_function``) where there is one; False learns
+        it by regression on psi as if unknown, so that off the data it falls to ``off_data_reward``.
+        With feature dynamics the model predicts an unseen state's successor to be itself, so a
+        known alive bonus (CartPole's +1) values every unseen state at 1 / (1 - gamma), the most
+        any state can have. A ``reward_fn`` given to the constructor is always used.
     """
 
     method: str = "ridge"
@@ -203,6 +209,7 @@ class ModelUpdateConfig:
     state_reward: bool = False
     state_reward_l2: float = 1e-3
     off_data_reward: str = "least"
+    known_reward: bool = True
 
     def __post_init__(self) -> None:
         check_choice("model_update.method", self.method, MODEL_UPDATE_METHODS)
@@ -222,6 +229,7 @@ class ModelUpdateConfig:
         check_positive_int("model_update.holdout_size", self.holdout_size)
         check_positive("model_update.state_reward_l2", self.state_reward_l2)
         check_choice("model_update.off_data_reward", self.off_data_reward, OFF_DATA_REWARDS)
+        check("model_update.known_reward", self.known_reward, isinstance(self.known_reward, bool), "a bool")
 
 
 MIN_COLLECTION_SIZE = 2000
