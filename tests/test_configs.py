@@ -58,7 +58,7 @@ def test_presets_apply_and_command_line_overrides_win():
     assert agent.policy.dynamics.phi.width == 21 * 15 + 1 and agent.omega == 0.2  # the preset
     assert agent.gamma == 0.95  # the override
     cartpole = _compose(["env=cartpole"])
-    assert instantiate(cartpole.agent, env=cartpole.env.id, seed=0, _convert_="all").gamma == 0.99
+    assert instantiate(cartpole.agent, env=cartpole.env.id, seed=0, _convert_="all").gamma == 0.995
 
 
 def test_train_writes_events_model_and_summary(tmp_path):
