@@ -24,19 +24,24 @@ def trained(request):
     """A Pendulum agent after a few iterations (q > 0), with a known reward, and a CartPole one
     (Discrete actions, a terminal bonus of 0 but a termination model). Their B is learned by SGD:
     the float32 tolerances below were measured on the evaluation systems of these models (an
-    exact ridge fit of B on 360 transitions conditions them differently)."""
+    exact ridge fit of B on 360 transitions conditions them differently). CartPole's planner is pinned
+    to the settings they were measured with (its preset's known reward, smoothed greedy step and gamma
+    0.99 until f15f1f5): the reference below evaluates the greedy policy."""
     from tests.conftest import small_kwargs
 
     models = {}
-    sgd = {**small_kwargs()["model_update"], "method": "sgd"}
+    sgd = {**small_kwargs()["model_update"], "method": "sgd", "known_reward": True}
+    greedy = {"gamma": 0.99, "improvement": {"method": "smoothed_greedy"}}
     for env_id in ("Pendulum-v1", "CartPole-v1"):
-        kwargs = small_kwargs() if env_id == "Pendulum-v1" else small_kwargs(policy_kwargs={"phi": {"resolution": [3]}})
+        kwargs = (
+            small_kwargs() if env_id == "Pendulum-v1" else small_kwargs(policy_kwargs={"phi": {"resolution": [3]}}, **greedy)
+        )
         model = CMEPolicyIteration("CMEPolicy", env_id, seed=0, **{**kwargs, "model_update": sgd})
         model.learn(400)
         assert model.q > 0
         models[env_id] = model
     # |C| = 300 < p = 626: the dual system, built from the factors of the residual map
-    wide_kwargs = small_kwargs(policy_kwargs={"phi": {"resolution": [5]}}, model_update=sgd)
+    wide_kwargs = small_kwargs(policy_kwargs={"phi": {"resolution": [5]}}, model_update=sgd, **greedy)
     wide = CMEPolicyIteration("CMEPolicy", "CartPole-v1", seed=0, **wide_kwargs)
     wide.learn(400)
     assert wide._factored_evaluation(300)

@@ -19,14 +19,22 @@ def _agent(**kwargs) -> CMEPolicyIteration:
     return CMEPolicyIteration("CMEPolicy", "CartPole-v1", seed=0, **SMALL, **kwargs)
 
 
-def test_by_default_the_known_reward_is_planned_with():
-    agent = _agent()
+def test_by_default_a_known_reward_is_planned_with():
+    assert ModelUpdateConfig().known_reward is True
+    agent = CMEPolicyIteration("CMEPolicy", "Acrobot-v1", seed=0, **SMALL)  # a preset without the key
+    assert agent.reward_source == "known" and agent.dynamics.reward is KNOWN_REWARDS["Acrobot-v1"]
+    assert not agent.dynamics.learn_reward
+
+
+def test_cartpole_preset_learns_its_reward_and_an_argument_brings_the_known_one_back():
+    assert _agent().reward_source == "learned"
+    agent = _agent(model_update={"known_reward": True})
     assert agent.reward_source == "known" and agent.dynamics.reward is KNOWN_REWARDS["CartPole-v1"]
     assert not agent.dynamics.learn_reward
 
 
 def test_false_learns_it_on_psi_and_says_so(capsys):
-    agent = _agent(model_update={"known_reward": False}, verbose=1)
+    agent = _agent(verbose=1)
     assert agent.reward_source == "learned" and agent.dynamics.learn_reward
     agent.learn(200)
     assert "is learned by regression on psi (model_update.known_reward=False)" in capsys.readouterr().out
@@ -44,12 +52,12 @@ def test_a_user_reward_still_wins():
     def reward(obs, action):
         return obs[:, 0] * 0.0 + 2.0
 
-    agent = _agent(model_update={"known_reward": False}, reward_fn=reward)
+    agent = _agent(reward_fn=reward)  # the preset says known_reward=False
     assert agent.reward_source == "user" and not agent.dynamics.learn_reward
 
 
 def test_it_survives_save_load(tmp_path: Path):
-    agent = _agent(model_update={"known_reward": False})
+    agent = _agent()
     agent.learn(200)
     agent.save(tmp_path / "m")
     loaded = CMEPolicyIteration.load(tmp_path / "m", env=gym.make("CartPole-v1"))
