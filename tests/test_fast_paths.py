@@ -25,12 +25,12 @@ def trained(request):
     (Discrete actions, a terminal bonus of 0 but a termination model). Their B is learned by SGD:
     the float32 tolerances below were measured on the evaluation systems of these models (an
     exact ridge fit of B on 360 transitions conditions them differently). CartPole's planner is pinned
-    to the settings they were measured with (its preset's known reward, smoothed greedy step and gamma
-    0.99 until f15f1f5): the reference below evaluates the greedy policy."""
+    to the settings they were measured with (its preset's smoothed greedy step and gamma 0.99 before
+    f15f1f5): the reference below evaluates the greedy policy."""
     from tests.conftest import small_kwargs
 
     models = {}
-    sgd = {**small_kwargs()["model_update"], "method": "sgd", "known_reward": True}
+    sgd = {**small_kwargs()["model_update"], "method": "sgd"}
     greedy = {"gamma": 0.99, "improvement": {"method": "smoothed_greedy"}}
     for env_id in ("Pendulum-v1", "CartPole-v1"):
         kwargs = (

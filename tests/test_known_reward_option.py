@@ -26,15 +26,14 @@ def test_by_default_a_known_reward_is_planned_with():
     assert not agent.dynamics.learn_reward
 
 
-def test_cartpole_preset_learns_its_reward_and_an_argument_brings_the_known_one_back():
-    assert _agent().reward_source == "learned"
-    agent = _agent(model_update={"known_reward": True})
-    assert agent.reward_source == "known" and agent.dynamics.reward is KNOWN_REWARDS["CartPole-v1"]
-    assert not agent.dynamics.learn_reward
+def test_false_learns_a_known_reward_and_true_keeps_it():
+    assert _agent().reward_source == "known"
+    agent = _agent(model_update={"known_reward": False})
+    assert agent.reward_source == "learned" and agent.dynamics.learn_reward
 
 
 def test_false_learns_it_on_psi_and_says_so(capsys):
-    agent = _agent(verbose=1)
+    agent = _agent(model_update={"known_reward": False}, verbose=1)
     assert agent.reward_source == "learned" and agent.dynamics.learn_reward
     agent.learn(200)
     assert "is learned by regression on psi (model_update.known_reward=False)" in capsys.readouterr().out
@@ -52,12 +51,12 @@ def test_a_user_reward_still_wins():
     def reward(obs, action):
         return obs[:, 0] * 0.0 + 2.0
 
-    agent = _agent(reward_fn=reward)  # the preset says known_reward=False
+    agent = _agent(model_update={"known_reward": False}, reward_fn=reward)
     assert agent.reward_source == "user" and not agent.dynamics.learn_reward
 
 
 def test_it_survives_save_load(tmp_path: Path):
-    agent = _agent()
+    agent = _agent(model_update={"known_reward": False})
     agent.learn(200)
     agent.save(tmp_path / "m")
     loaded = CMEPolicyIteration.load(tmp_path / "m", env=gym.make("CartPole-v1"))
