@@ -69,6 +69,8 @@ SUITE_AGENTS = ("cme", "sac", "random", "zero")
 """The suite's agents; ``cme_frozen`` is an ablation run on request (``--agents cme_frozen``)."""
 TARGET_ENV, TARGET_RETURN, TARGET_STEPS = "InvertedPendulum-v5", 950.0, 5_000
 """Issue 14: InvertedPendulum-v5 at or above 950 within 5,000 env steps."""
+BUDGETS = (2_000, 5_000, 10_000)
+"""Env-step budgets below the runs' last at which the report compares the learners (the last is always added)."""
 EVAL_EPISODES = 10
 RANDOM_EPISODES = 100
 EVAL_SEED_OFFSET = 10_000
@@ -447,6 +449,44 @@ def verdicts(complete: dict[tuple[str, str], list[dict[str, Any]]], steps: int) 
     return lines
 
 
+def return_at(run: dict[str, Any], steps: int) -> float | None:
+    """A run's evaluation return at ``steps`` env steps (None: not evaluated there)."""
+    return next((row["return_mean"] for row in run["evaluations"] if row["steps"] == steps), None)
+
+
+def by_budget(complete: dict[tuple[str, str], list[dict[str, Any]]], envs: list[str], steps: int) -> list[str]:
+    """The learners' returns at each budget of :data:`BUDGETS` below ``steps`` and at ``steps``
+    (mean +- std over the seeds evaluated there), and per env the budgets at which CME's mean is
+    above SAC's: where the model-based agent is ahead, not only at the end.
+
+    :param steps: the runs' planned length in env steps (the last budget)
+    :return: the section's lines (a table, then one line per env with both agents)
+    """
+    budgets = [budget for budget in BUDGETS if budget < steps] + [steps]
+
+    def returns(runs: list[dict[str, Any]], budget: int) -> list[float]:
+        return [value for value in (return_at(run, budget) for run in runs) if value is not None]
+
+    rows, ahead = [], []
+    for env in envs:
+        for agent in LEARNERS:
+            runs = complete.get((env, agent), [])
+            if runs:
+                rows.append([env, agent, *(_mean_std(values) if (values := returns(runs, b)) else "-" for b in budgets)])
+        cme, sac = complete.get((env, "cme"), []), complete.get((env, "sac"), [])
+        if cme and sac:
+            leads = [
+                f"{budget:,}"
+                for budget in budgets
+                if returns(cme, budget)
+                and returns(sac, budget)
+                and statistics.mean(returns(cme, budget)) > statistics.mean(returns(sac, budget))
+            ]
+            ahead.append(f"- {env}: CME's mean above SAC's at {', '.join(leads) or 'no budget'} (env steps)")
+    header = ["env", "agent", *(f"return at {budget:,} steps" for budget in budgets)]
+    return [markdown_table(header, rows), "", *ahead] if rows else ["No complete run of a learning agent."]
+
+
 def plot(complete: dict[tuple[str, str], list[dict[str, Any]]], envs: list[str], out: Path) -> None:
     """results/unseen_envs.png: a panel per env of ``envs``, each seed thin, the mean thick, random dashed, zero dash-dot."""
     plt = pyplot()
@@ -552,6 +592,13 @@ def report(envs: list[str], steps: int, out: Path) -> None:
             "each run's JSON). One job at a time, one torch thread, on a 2-core machine shared with other work.",
             "",
             markdown_table(header, rows),
+            "",
+            "## Return by budget",
+            "",
+            "The evaluation return of each learning agent after 2,000, 5,000 and 10,000 env steps and at the end "
+            "(mean +- std over the seeds evaluated there): a model-based agent may lead early and fall behind later.",
+            "",
+            *by_budget(complete, envs, steps),
             "",
             "## Targets (issue 14)",
             "",

@@ -13,8 +13,10 @@ import unseen_envs  # noqa: E402
 from common import save_record  # noqa: E402
 
 
-def _save_run(out: Path, agent: str, env: str, seed: int, final: float) -> None:
-    job = unseen_envs.Job(agent, env, seed, steps=2_000, eval_every=1_000, out=str(out), command="test")
+def _save_run(out: Path, agent: str, env: str, seed: int, final: float, curve: dict[int, float] | None = None) -> None:
+    """A complete run of 2,000 steps ending at ``final``, or of the last step of ``curve`` (steps -> return)."""
+    curve = curve or {1_000: final - 1.0, 2_000: final}
+    job = unseen_envs.Job(agent, env, seed, steps=max(curve), eval_every=1_000, out=str(out), command="test")
     evaluations = [
         {
             "steps": steps,
@@ -27,7 +29,7 @@ def _save_run(out: Path, agent: str, env: str, seed: int, final: float) -> None:
             "peak_rss_mib": 100.0,
             "n_features": 0,
         }
-        for steps, value in ((1_000, final - 1.0), (2_000, final))
+        for steps, value in curve.items()
     ]
     record = {"job": vars(job), "commit": "abc1234", "complete": True, "evaluations": evaluations, "peak_rss_mib": 100.0}
     if agent == "cme":
@@ -42,7 +44,8 @@ def test_held_out_env_is_reported_but_not_a_target(tmp_path):
         _save_run(tmp_path, "sac", "Reacher-v5", seed, -5.0)
     unseen_envs.report(list(unseen_envs.ENVS), 2_000, tmp_path)
     text = (tmp_path / "unseen_envs.md").read_text()
-    rows = [line for line in text.splitlines() if line.startswith("| Swimmer-v5 | cme |")]
+    summary = text.split("## Return by budget")[0]
+    rows = [line for line in summary.splitlines() if line.startswith("| Swimmer-v5 | cme |")]
     assert len(rows) == 1 and "15.0 +- 7.1" in rows[0]
     targets = text.split("## Targets")[1].split("## Runs")[0]
     assert "Swimmer" not in targets
@@ -53,3 +56,18 @@ def test_held_out_env_without_runs_is_left_out(tmp_path):
     _save_run(tmp_path, "cme", "Reacher-v5", 0, -10.0)
     unseen_envs.report(list(unseen_envs.ENVS), 2_000, tmp_path)
     assert "Swimmer" not in (tmp_path / "unseen_envs.md").read_text()
+
+
+def test_the_budget_table_says_where_cme_leads_and_where_it_falls_behind(tmp_path):
+    for seed in (0, 1):
+        _save_run(
+            tmp_path, "cme", "InvertedPendulum-v5", seed, 0.0, {2_000: 50.0, 5_000: 400.0 + seed, 10_000: 700.0, 20_000: 700.0}
+        )
+        _save_run(
+            tmp_path, "sac", "InvertedPendulum-v5", seed, 0.0, {2_000: 100.0, 5_000: 100.0, 10_000: 140.0, 20_000: 1000.0}
+        )
+    unseen_envs.report(list(unseen_envs.ENVS), 20_000, tmp_path)
+    section = (tmp_path / "unseen_envs.md").read_text().split("## Return by budget")[1].split("## Targets")[0]
+    assert "| InvertedPendulum-v5 | cme | 50.0 +- 0.0 | 400.5 +- 0.7 | 700.0 +- 0.0 | 700.0 +- 0.0 |" in section
+    assert "| InvertedPendulum-v5 | sac | 100.0 +- 0.0 | 100.0 +- 0.0 | 140.0 +- 0.0 | 1000.0 +- 0.0 |" in section
+    assert "- InvertedPendulum-v5: CME's mean above SAC's at 5,000, 10,000 (env steps)" in section
