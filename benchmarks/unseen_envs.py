@@ -482,7 +482,7 @@ def by_budget(complete: dict[tuple[str, str], list[dict[str, Any]]], envs: list[
                 and returns(sac, budget)
                 and statistics.mean(returns(cme, budget)) > statistics.mean(returns(sac, budget))
             ]
-            ahead.append(f"- {env}: CME's mean above SAC's at {', '.join(leads) or 'no budget'} (env steps)")
+            ahead.append(f"- {env}: CME's mean above SAC's at {', '.join(leads) + ' env steps' if leads else 'no budget'}")
     header = ["env", "agent", *(f"return at {budget:,} steps" for budget in budgets)]
     return [markdown_table(header, rows), "", *ahead] if rows else ["No complete run of a learning agent."]
 

@@ -70,4 +70,4 @@ def test_the_budget_table_says_where_cme_leads_and_where_it_falls_behind(tmp_pat
     section = (tmp_path / "unseen_envs.md").read_text().split("## Return by budget")[1].split("## Targets")[0]
     assert "| InvertedPendulum-v5 | cme | 50.0 +- 0.0 | 400.5 +- 0.7 | 700.0 +- 0.0 | 700.0 +- 0.0 |" in section
     assert "| InvertedPendulum-v5 | sac | 100.0 +- 0.0 | 100.0 +- 0.0 | 140.0 +- 0.0 | 1000.0 +- 0.0 |" in section
-    assert "- InvertedPendulum-v5: CME's mean above SAC's at 5,000, 10,000 (env steps)" in section
+    assert "- InvertedPendulum-v5: CME's mean above SAC's at 5,000, 10,000 env steps" in section
