@@ -276,10 +276,10 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
     def _resolve_reward(self) -> tuple[RewardSpec | None, str]:
         """The reward to plan with and its source; a loaded model keeps the source it was trained with."""
         saved_source = getattr(self, "reward_source", None)
-        if saved_source == "learned" or (self.reward_fn is None and not self.model_update_config.known_reward):
-            return None, "learned"
         if saved_source == "user" and self.reward_fn is None:
             raise ValueError("this model was trained with a user-supplied reward: pass reward_fn= to load()")
+        if saved_source == "learned" or (self.reward_fn is None and not self.model_update_config.known_reward):
+            return None, "learned"
         return resolve_reward(self.reward_fn, self.env_id, self._local_env(remake=saved_source == "env"))
 
     def _local_env(self, remake: bool) -> gym.Env | None:

@@ -55,6 +55,15 @@ def test_a_user_reward_still_wins():
     assert agent.reward_source == "user" and not agent.dynamics.learn_reward
 
 
+def test_a_model_trained_with_a_user_reward_still_asks_for_it_on_load(tmp_path: Path):
+    def reward(obs, action):
+        return obs[:, 0] * 0.0 + 2.0
+
+    _agent(model_update={"known_reward": False}, reward_fn=reward).save(tmp_path / "m")
+    with pytest.raises(ValueError, match=r"pass reward_fn= to load\(\)"):
+        CMEPolicyIteration.load(tmp_path / "m", env=gym.make("CartPole-v1"))
+
+
 def test_it_survives_save_load(tmp_path: Path):
     agent = _agent(model_update={"known_reward": False})
     agent.learn(200)
