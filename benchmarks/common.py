@@ -35,8 +35,11 @@ def command_line() -> str:
     """The command that is running, as a user would type it from the repository root, and the
     commit of the code it ran (with ``+changes`` if the work tree differed from it)."""
     script = Path(sys.argv[0]).resolve()
-    script = script.relative_to(ROOT) if script.is_relative_to(ROOT) else script  # e.g. pytest's entry point
-    command = " ".join(["python", str(script), *(shlex.quote(a) for a in sys.argv[1:])])
+    if script.suffix == ".py" and script.is_relative_to(ROOT / "benchmarks"):  # a benchmark, run as a module
+        program = ["-m", ".".join(script.relative_to(ROOT).with_suffix("").parts)]
+    else:  # e.g. pytest's entry point
+        program = [str(script.relative_to(ROOT) if script.is_relative_to(ROOT) else script)]
+    command = " ".join(["python", *program, *(shlex.quote(a) for a in sys.argv[1:])])
     return f"{command}` at commit `{code_version()}"
 
 

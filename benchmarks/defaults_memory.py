@@ -4,7 +4,7 @@ thread count, a fresh process per run (peak RSS of the whole process: torch, SB3
 included), repeated because the peak varies from run to run with the allocator's heap.
 Writes results/defaults_memory.md.
 
-    python benchmarks/defaults_memory.py [--envs CartPole-v1 Pendulum-v1 InvertedPendulum-v5] [--steps 400] [--repeats 3]
+    python -m benchmarks.defaults_memory [--envs CartPole-v1 Pendulum-v1 InvertedPendulum-v5] [--steps 400] [--repeats 3]
 """
 
 from __future__ import annotations
@@ -14,13 +14,11 @@ import json
 import subprocess
 import sys
 
-from common import ROOT, command_line, markdown_table, write_markdown
+from benchmarks.common import command_line, markdown_table, write_markdown
 
 PROBE = r"""
 import json, resource, sys, time
-sys.path.insert(0, sys.argv[3])
-import unseen_envs  # registers the custom env
-from cme_agent import CMEPolicyIteration
+from cme_agent import CMEPolicyIteration  # registers the package's envs (PointGoal2D-v0)
 model = CMEPolicyIteration("CMEPolicy", sys.argv[1])
 start = time.perf_counter()
 model.learn(int(sys.argv[2]))
@@ -31,9 +29,7 @@ print(json.dumps({"seconds": seconds, "peak_mib": peak, "q": model.q}))
 
 def probe(env_id: str, steps: int) -> dict[str, float]:
     """One fresh process: learn ``steps`` at the defaults; its wall seconds in learn(), peak RSS and q."""
-    result = subprocess.run(
-        [sys.executable, "-c", PROBE, env_id, str(steps), str(ROOT / "benchmarks")], capture_output=True, text=True, check=True
-    )
+    result = subprocess.run([sys.executable, "-c", PROBE, env_id, str(steps)], capture_output=True, text=True, check=True)
     return json.loads(result.stdout.strip().splitlines()[-1])
 
 

@@ -10,7 +10,7 @@ The run writes a resumable checkpoint every ``--checkpoint-every`` iterations; `
 continues an interrupted run from it (the CSV keeps the rows up to the checkpoint's iteration;
 resident memory restarts from a fresh process, which the CSV's ``resumed`` column marks).
 
-    python benchmarks/endurance.py [--steps 200000] [--resume]
+    python -m benchmarks.endurance [--steps 200000] [--resume]
 """
 
 from __future__ import annotations
@@ -23,11 +23,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import RESULTS, command_line, compose_config, pyplot, resident_bytes
 from hydra.utils import get_class
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import configure
 
+from benchmarks.common import RESULTS, command_line, compose_config, pyplot, resident_bytes
 from cme_agent.callbacks import IterationCheckpoint
 from cme_agent.experiment import build_agent, make_env
 

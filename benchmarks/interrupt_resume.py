@@ -11,7 +11,7 @@ run starts fresh episodes, so its data, and from there its policy, differ from t
 run's. With ``agent.reset_envs_each_iteration=true`` every iteration starts fresh, seeded episodes,
 and a resumed run is the uninterrupted run exactly.
 
-    python benchmarks/interrupt_resume.py --seeds 0 1 2 3 4 [--workers 2] [--overrides key=value ...]
+    python -m benchmarks.interrupt_resume --seeds 0 1 2 3 4 [--workers 2] [--overrides key=value ...]
 
 Writes results/<stem>.md and results/<stem>.csv (every evaluation of every run). Each finished run
 is kept in results/interrupt_resume_runs/<stem>/, so a rerun skips it and an interrupted benchmark
@@ -34,7 +34,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from common import RESULTS, ROOT, command_line, compose_config, markdown_table, write_report
+from benchmarks.common import RESULTS, ROOT, command_line, compose_config, markdown_table, write_report
 
 ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
 QUIET = {"stdout": subprocess.DEVNULL, "stderr": subprocess.PIPE}

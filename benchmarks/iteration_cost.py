@@ -9,7 +9,7 @@ counted by ``torch.utils.flop_counter``; the floor is that count at this machine
 GEMM rate, measured in the same run on the iteration's largest product. Also times matching
 pursuit picking 50 features from 1,000 candidates on a 2,000-point subsample.
 
-    python benchmarks/iteration_cost.py [--repeats 5] [--q 2000]
+    python -m benchmarks.iteration_cost [--repeats 5] [--q 2000]
 """
 
 from __future__ import annotations
@@ -23,11 +23,11 @@ import time
 import gymnasium as gym
 import numpy as np
 import torch
-from common import command_line, compose_config, markdown_table, write_markdown
 from hydra.utils import instantiate
 from stable_baselines3.common.logger import configure
 from torch.utils.flop_counter import FlopCounterMode
 
+from benchmarks.common import command_line, compose_config, markdown_table, write_markdown
 from cme_agent import CMEPolicyIteration
 from cme_agent.dynamics import matching_pursuit
 

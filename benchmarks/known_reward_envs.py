@@ -6,15 +6,16 @@ InvertedPendulum-v5 its termination too. Under these ids the same envs come with
 so a run with ``--env-id <id>`` separates what the learned reward costs from what the model and
 the planner cost. Importing this module registers both ids (the spawned job processes import it too).
 
-    python benchmarks/learning_quality.py --envs --env-id InvertedPendulumKnownReward-v5 --steps 5000 --target 950
+    python -m benchmarks.learning_quality --envs --env-id InvertedPendulumKnownReward-v5 --steps 5000 --target 950
 """
 
 from __future__ import annotations
 
 import gymnasium as gym
 import torch
-from unseen_envs import CUSTOM_ENV, PointGoal2D
 
+from benchmarks.unseen_envs import CUSTOM_ENV
+from cme_agent.envs.point_goal import PointGoal2D
 from cme_agent.rewards import RewardSpec, register_reward
 
 INVERTED_PENDULUM = "InvertedPendulumKnownReward-v5"

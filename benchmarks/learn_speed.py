@@ -16,7 +16,7 @@ in thread CPU seconds, the two versions alternating):
 The baseline is the commit given by ``--baseline``, checked out into a scratch git worktree and
 imported in place of this checkout (same interpreter and packages: only cme_agent differs).
 
-    python benchmarks/learn_speed.py [--baseline 6add98b] [--repeats 1] [--stem learn_speed] [--workloads cartpole]
+    python -m benchmarks.learn_speed [--baseline 6add98b] [--repeats 1] [--stem learn_speed] [--workloads cartpole]
         [--cartpole-seeds 0 1 2]
 """
 
@@ -30,7 +30,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from common import ROOT, command_line, markdown_table, write_markdown
+from benchmarks.common import ROOT, command_line, markdown_table, write_markdown
 
 WORKLOAD = r"""
 import json, sys, time

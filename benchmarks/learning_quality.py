@@ -1,7 +1,7 @@
 """Learning quality and stability of CMEPolicyIteration on the Gymnasium classics, 10 seeds.
 
 Each run trains with the Hydra config of its env (exactly what ``python train.py env=<name>``
-runs: the library's defaults and the env's preset, cme_agent/presets.py) and pauses every
+runs: the library's defaults and the env's preset, cme_agent/presets/<env id>.yaml) and pauses every
 1,000 env steps for an evaluation: 10 episodes of the deterministic policy from fixed random
 starts (the same at every evaluation of a seed, seeded apart from training,
 :func:`cme_agent.experiment.make_eval_env`). Per env the report gives (issue 15): how many seeds
@@ -14,11 +14,11 @@ Each finished run is kept in results/<stem>/<env>_seed<k>.json, so an interrupte
 resumes where it stopped (rerun the same command); ``--report-only`` rewrites the report
 from the records.
 
-    python benchmarks/learning_quality.py --envs pendulum cartpole --seeds 0 1 2 [--workers 2]
-    python benchmarks/learning_quality.py --stem learning_quality_soft --overrides agent.improvement.method=soft
-    python benchmarks/learning_quality.py --envs --env-id InvertedPendulum-v5 --steps 5000 --target 950 \
+    python -m benchmarks.learning_quality --envs pendulum cartpole --seeds 0 1 2 [--workers 2]
+    python -m benchmarks.learning_quality --stem learning_quality_soft --overrides agent.improvement.method=soft
+    python -m benchmarks.learning_quality --envs --env-id InvertedPendulum-v5 --steps 5000 --target 950 \
         --kwargs '{"gamma": 0.95}' --stem lq_inverted_pendulum
-    python benchmarks/learning_quality.py --envs --env-id InvertedPendulumKnownReward-v5 --steps 5000 --target 950 \
+    python -m benchmarks.learning_quality --envs --env-id InvertedPendulumKnownReward-v5 --steps 5000 --target 950 \
         --stem probe_ip_known_reward      # the exact reward given (benchmarks/known_reward_envs.py)
 """
 
@@ -35,14 +35,22 @@ from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
-import known_reward_envs  # noqa: F401  (registers the suite's envs with their exact reward under new ids)
 import torch
-from common import RESULTS, command_line, compose_config, markdown_table, plot_learning_curves, save_record, write_report
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.logger import Logger, configure
 from stable_baselines3.common.monitor import Monitor
-from unseen_envs import EVAL_SEED_OFFSET  # importing it registers PointGoal2D-v0
 
+from benchmarks import known_reward_envs  # noqa: F401  (registers the suite's envs with their exact reward under new ids)
+from benchmarks.common import (
+    RESULTS,
+    command_line,
+    compose_config,
+    markdown_table,
+    plot_learning_curves,
+    save_record,
+    write_report,
+)
+from benchmarks.unseen_envs import EVAL_SEED_OFFSET
 from cme_agent import CMEPolicyIteration
 from cme_agent.experiment import build_agent, make_env, make_eval_env
 

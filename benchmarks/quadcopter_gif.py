@@ -1,6 +1,6 @@
 """Write a GIF of a policy flying Quadcopter-v0, drawn by the env's rgb_array renderer.
 
-Usage: ``python benchmarks/quadcopter_gif.py [--model PATH] [--output PATH] [--seed 0] [--overrides KEY=VALUE ...]``.
+Usage: ``python -m benchmarks.quadcopter_gif [--model PATH] [--output PATH] [--seed 0] [--overrides KEY=VALUE ...]``.
 Without ``--model`` the scripted ``QuadcopterPController`` flies. The env is ``conf/env/quadcopter.yaml``'s
 (the one ``python train.py env=quadcopter`` trains on), with the Hydra ``--overrides`` applied
 (e.g. ``env.kwargs.process_noise=0.2``).
@@ -11,9 +11,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from common import command_line, compose_config
 from PIL import Image
 
+from benchmarks.common import command_line, compose_config
 from cme_agent.envs.quadcopter import QuadcopterEnv
 from cme_agent.envs.quadcopter_controller import QuadcopterPController
 from cme_agent.experiment import make_eval_env

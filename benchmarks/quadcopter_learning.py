@@ -6,7 +6,7 @@ final distance to the target. The scripted proportional controller is evaluated 
 episodes. Writes results/quadcopter_learning.md, results/quadcopter_learning.csv and, with
 matplotlib, results/quadcopter_learning.png (mean and individual runs, controller as a line).
 
-    python benchmarks/quadcopter_learning.py --seeds 0 1 2 [--steps 20000] [--workers 2]
+    python -m benchmarks.quadcopter_learning --seeds 0 1 2 [--steps 20000] [--workers 2]
 """
 
 from __future__ import annotations
@@ -19,9 +19,9 @@ from functools import partial
 from typing import Any
 
 import gymnasium as gym
-from common import command_line, compose_config, markdown_table, plot_learning_curves, write_report
-from learning_quality import train_with_evaluations
 
+from benchmarks.common import command_line, compose_config, markdown_table, plot_learning_curves, write_report
+from benchmarks.learning_quality import train_with_evaluations
 from cme_agent.envs import QuadcopterPController
 from cme_agent.experiment import make_eval_env
 

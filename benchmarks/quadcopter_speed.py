@@ -1,6 +1,6 @@
 """Agent steps per second of Quadcopter-v0 in one process, random actions, reset on done.
 
-Usage: ``python benchmarks/quadcopter_speed.py [--steps 5000] [--agent-dt 0.2] [--seed 0]``
+Usage: ``python -m benchmarks.quadcopter_speed [--steps 5000] [--agent-dt 0.2] [--seed 0]``
 """
 
 import argparse
@@ -40,7 +40,7 @@ def main() -> None:
     args = parser.parse_args()
     env = QuadcopterEnv(agent_dt=args.agent_dt, process_noise=args.process_noise)
     rate = measure(env, args.steps, args.seed)
-    print(f"command: python {shlex.join(sys.argv)}")
+    print(f"command: python -m benchmarks.quadcopter_speed {shlex.join(sys.argv[1:])}")
     print(f"Quadcopter-v0: {rate:,.0f} agent steps/s ({env.physics_steps} physics steps each)")
 
 

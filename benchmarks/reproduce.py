@@ -21,9 +21,9 @@ figures from the saved runs. Then it writes, into ``<out>``:
 MP's runs on Mountain Car keep the paper's SGD update (``PAPER_UPDATE``); every other run is the
 config ``train.py`` would run, its env's preset included.
 
-    python benchmarks/reproduce.py --quick    # a few minutes, 2 seeds and short runs, into results/quick/
-    python benchmarks/reproduce.py            # the full version (10 seeds, 5 for the table), into results/
-    python benchmarks/reproduce.py --only figure2 --report-only   # redraw from saved runs
+    python -m benchmarks.reproduce --quick    # a few minutes, 2 seeds and short runs, into results/quick/
+    python -m benchmarks.reproduce            # the full version (10 seeds, 5 for the table), into results/
+    python -m benchmarks.reproduce --only figure2 --report-only   # redraw from saved runs
 """
 
 from __future__ import annotations
@@ -42,11 +42,20 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-from common import RESULTS, code_version, command_line, compose_config, markdown_table, pyplot, resident_bytes, save_record
-from learning_quality import TARGETS, episode_returns, train_with_evaluations
-from quadcopter_learning import controller_statistics, flight_statistics
 from stable_baselines3.common.logger import KVWriter, Logger
 
+from benchmarks.common import (
+    RESULTS,
+    code_version,
+    command_line,
+    compose_config,
+    markdown_table,
+    pyplot,
+    resident_bytes,
+    save_record,
+)
+from benchmarks.learning_quality import TARGETS, episode_returns, train_with_evaluations
+from benchmarks.quadcopter_learning import controller_statistics, flight_statistics
 from cme_agent.config import AgentConfig
 from cme_agent.presets import apply_preset
 

@@ -2,8 +2,9 @@
 
 The suite: InvertedPendulum-v5, InvertedDoublePendulum-v5 and Reacher-v5 (MuJoCo, extra
 ``mujoco``: ``pip install -e ".[mujoco]"``), whose observation bounds are infinite, and
-``PointGoal2D-v0``, defined here: a 2-D point mass that must reach a goal only the env knows
-(no ``reward_function``: the agent learns the reward). No env has a preset.
+``PointGoal2D-v0`` (:class:`cme_agent.envs.point_goal.PointGoal2D`, registered by ``import cme_agent``):
+a 2-D point mass that must reach a goal only the env knows (no ``reward_function``: the agent
+learns the reward). No env has a preset.
 
 Held-out envs, run only when named in ``--envs``: ``Swimmer-v5`` (MuJoCo, 2-D action, 1,000-step
 episodes) and ``LunarLanderContinuous-v3`` (Box2D, extra ``box2d``; 2-D action: main and lateral
@@ -30,9 +31,9 @@ complete at the end; complete runs are skipped, so the script can be stopped and
 (an incomplete run restarts from scratch). ``--report-only`` writes ``results/unseen_envs.md``
 and ``results/unseen_envs.png`` from the saved runs.
 
-    python benchmarks/unseen_envs.py                       # the whole suite: 3 seeds, 20,000 steps
-    python benchmarks/unseen_envs.py --seeds 0 --agents cme --envs InvertedPendulum-v5
-    python benchmarks/unseen_envs.py --report-only
+    python -m benchmarks.unseen_envs                       # the whole suite: 3 seeds, 20,000 steps
+    python -m benchmarks.unseen_envs --seeds 0 --agents cme --envs InvertedPendulum-v5
+    python -m benchmarks.unseen_envs --report-only
 """
 
 from __future__ import annotations
@@ -48,15 +49,16 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 import torch
-from common import RESULTS, code_version, command_line, markdown_table, pyplot, resident_bytes, save_record
 from gymnasium import spaces
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.vec_env import VecEnv
+
+import cme_agent  # noqa: F401  (registers PointGoal2D-v0, in the spawned job processes too)
+from benchmarks.common import RESULTS, code_version, command_line, markdown_table, pyplot, resident_bytes, save_record
 
 CUSTOM_ENV = "PointGoal2D-v0"
 ENVS = ("InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Reacher-v5", CUSTOM_ENV)
@@ -75,54 +77,6 @@ EVAL_EPISODES = 10
 RANDOM_EPISODES = 100
 EVAL_SEED_OFFSET = 10_000
 MIB = 2**20
-
-
-class PointGoal2D(gym.Env):
-    """A 2-D point mass that must reach a fixed goal: observation (x, y, vx, vy) with infinite
-    bounds, action a force in [-1, 1]^2, reward ``-|p - goal| - 0.05 |a|^2``. The goal is known
-    only to the env (no ``reward_function``); episodes last 100 steps (no termination).
-
-    :param goal: the goal position
-    :param dt: time step
-    :param damping: velocity kept per step
-    """
-
-    metadata: dict[str, Any] = {"render_modes": []}  # noqa: RUF012
-
-    def __init__(self, goal: tuple[float, float] = (0.6, -0.4), dt: float = 0.1, damping: float = 0.9) -> None:
-        self.observation_space = spaces.Box(-np.inf, np.inf, (4,), np.float32)
-        self.action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
-        self.goal = np.asarray(goal, dtype=np.float64)
-        self.dt, self.damping = dt, damping
-        self.state = np.zeros(4)
-
-    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
-        super().reset(seed=seed)
-        self.state = np.concatenate([self.np_random.uniform(-1.0, 1.0, 2), np.zeros(2)])
-        return self.state.astype(np.float32), {}
-
-    def transition(self, states: np.ndarray, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The dynamics and reward on a batch: (N, 4) states, (N, 2) forces -> (N, 4) next states, (N,) rewards."""
-        force = np.clip(np.asarray(actions, dtype=np.float64), -1.0, 1.0)
-        velocity = self.damping * states[:, 2:] + self.dt * force
-        successors = np.concatenate([states[:, :2] + self.dt * velocity, velocity], axis=1)
-        offset = successors[:, :2] - self.goal
-        return successors, -np.sqrt(_row_dots(offset)) - 0.05 * _row_dots(force)
-
-    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        successors, rewards = self.transition(self.state[None], np.asarray(action)[None])
-        self.state = successors[0]
-        return self.state.astype(np.float32), float(rewards[0]), False, False, {}
-
-
-def _row_dots(rows: np.ndarray) -> np.ndarray:
-    """(N, d) -> (N,) each row's dot product with itself, rounded as a 1-D ``x @ x`` (so that a
-    batch of one repeats the env's step bit for bit)."""
-    return (rows[:, None, :] @ rows[:, :, None])[:, 0, 0]
-
-
-if CUSTOM_ENV not in gym.registry:  # at import: the job processes (spawned) register it too
-    gym.register(CUSTOM_ENV, entry_point=PointGoal2D, max_episode_steps=100)
 
 
 @dataclass(frozen=True)

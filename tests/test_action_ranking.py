@@ -3,19 +3,12 @@ hand, and its one-step Q of the simulator and of an untrained model on InvertedP
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
-sys.path.insert(0, str(BENCHMARKS))
-
-import action_ranking  # noqa: E402
-
-from cme_agent import CMEPolicyIteration  # noqa: E402
+from benchmarks.diagnostics import action_ranking
+from cme_agent import CMEPolicyIteration
 
 
 def test_metrics_of_an_exact_a_shrunk_and_a_reversed_model() -> None:
@@ -37,7 +30,7 @@ def test_one_step_values_of_the_simulator_and_of_an_untrained_model() -> None:
     import gymnasium as gym
 
     agent = CMEPolicyIteration("CMEPolicy", "InvertedPendulum-v5", seed=0)
-    agent._value_weights = torch.linspace(-1.0, 1.0, agent.dynamics.p)
+    agent.evaluator.value_weights = torch.linspace(-1.0, 1.0, agent.dynamics.p)
     env = gym.make("InvertedPendulum-v5")
     env.reset(seed=0)
     agent.dynamics.obs_encoder.fit(torch.randn(100, 4) * 0.1)  # the box the random phase would estimate
@@ -50,11 +43,13 @@ def test_one_step_values_of_the_simulator_and_of_an_untrained_model() -> None:
         for j, action in enumerate(actions):
             env.unwrapped.set_state(qpos, qvel)
             successor, reward, terminated, _, _ = env.step(action)
-            value = float(agent.dynamics.phi(torch.as_tensor(successor[None], dtype=torch.float32)) @ agent._value_weights)
+            value = float(
+                agent.dynamics.phi(torch.as_tensor(successor[None], dtype=torch.float32)) @ agent.evaluator.value_weights
+            )
             assert true_q[i, j] == pytest.approx(reward + (0.0 if terminated else agent.gamma * value), rel=1e-5, abs=1e-5)
             outcomes.append(terminated)
     assert any(outcomes) and not all(outcomes)  # both kinds of step were checked
     # q = 0: the model predicts no change and a learned reward of 0, whatever the action
     phi = agent.dynamics.phi(torch.as_tensor(np.asarray([s[2] for s in states]), dtype=torch.float32))
-    expected = agent.gamma * (phi @ agent._value_weights).numpy()
+    expected = agent.gamma * (phi @ agent.evaluator.value_weights).numpy()
     np.testing.assert_allclose(model_q, np.repeat(expected[:, None], 3, axis=1), rtol=1e-5, atol=1e-5)

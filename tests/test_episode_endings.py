@@ -2,15 +2,10 @@
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import gymnasium as gym
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-
-from episode_endings import TERMINATION_BOUNDS, episode_endings
+from benchmarks.diagnostics.episode_endings import TERMINATION_BOUNDS, episode_endings
 
 
 class ConstantPolicy:

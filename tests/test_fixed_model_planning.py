@@ -3,17 +3,10 @@ run whose planning blocks leave the model untouched."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import torch
 
+from benchmarks.diagnostics import fixed_model_planning
 from cme_agent import CMEPolicyIteration
-
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
-sys.path.insert(0, str(BENCHMARKS))
-
-import fixed_model_planning  # noqa: E402
 
 
 def _curve(returns: list[float], biases: list[float]) -> list[dict]:

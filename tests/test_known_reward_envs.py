@@ -3,21 +3,14 @@ the env's own, step by step, and the agent plans with it."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import gymnasium as gym
 import numpy as np
 import pytest
 import torch
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
-sys.path.insert(0, str(BENCHMARKS))
-
-import known_reward_envs  # noqa: E402
-
-from cme_agent import CMEPolicyIteration  # noqa: E402
-from cme_agent.rewards import KNOWN_REWARDS  # noqa: E402
+from benchmarks import known_reward_envs
+from cme_agent import CMEPolicyIteration
+from cme_agent.rewards import KNOWN_REWARDS
 
 
 def _rewards_along_a_random_episode(env_id: str, steps: int) -> tuple[list[float], list[float], list[bool], list[bool]]:

@@ -4,15 +4,9 @@ Gymnasium id trained at the library's defaults through ``--env-id``'s path."""
 from __future__ import annotations
 
 import math
-import sys
-from pathlib import Path
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
-sys.path.insert(0, str(BENCHMARKS))
-
-import learning_quality  # noqa: E402
-
-from tests.conftest import small_kwargs  # noqa: E402
+from benchmarks import learning_quality
+from tests.conftest import small_kwargs
 
 
 def _curve(returns: list[float], seconds: float = 10.0) -> list[dict]:

@@ -4,20 +4,13 @@ nothing on the same starts."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import gymnasium as gym
 import numpy as np
 from stable_baselines3.common.evaluation import evaluate_policy
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
-sys.path.insert(0, str(BENCHMARKS))
-
-import pendulum_optimum as po  # noqa: E402
-from common import compose_config  # noqa: E402
-
-from cme_agent.experiment import make_eval_env  # noqa: E402
+from benchmarks.common import compose_config
+from benchmarks.diagnostics import pendulum_optimum as po
+from cme_agent.experiment import make_eval_env
 
 
 def test_step_is_the_simulators():

@@ -3,19 +3,13 @@ reward against the env's own steps, and the probe's rows on a short run."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import torch
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
-sys.path.insert(0, str(BENCHMARKS))
-
-import reward_model_error  # noqa: E402
-from unseen_envs import CUSTOM_ENV, PointGoal2D  # noqa: E402
-
-from cme_agent import CMEPolicyIteration  # noqa: E402
+from benchmarks.diagnostics import reward_model_error
+from benchmarks.unseen_envs import CUSTOM_ENV
+from cme_agent import CMEPolicyIteration
+from cme_agent.envs.point_goal import PointGoal2D
 
 
 def test_true_reward_is_the_envs_reward():

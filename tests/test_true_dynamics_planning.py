@@ -5,22 +5,17 @@ hand, and the rows of a short run."""
 from __future__ import annotations
 
 import math
-import sys
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
-sys.path.insert(0, str(BENCHMARKS))
-
-import true_dynamics_planning as tdp  # noqa: E402
-from unseen_envs import CUSTOM_ENV, PointGoal2D  # noqa: E402
-
-from cme_agent import CMEPolicyIteration  # noqa: E402
-from cme_agent.planning import bellman_residual_weights  # noqa: E402
+from benchmarks.diagnostics import true_dynamics_planning as tdp
+from benchmarks.unseen_envs import CUSTOM_ENV
+from cme_agent import CMEPolicyIteration
+from cme_agent.envs.point_goal import PointGoal2D
+from cme_agent.planning import bellman_residual_weights
 
 
 def _states(rng: np.random.Generator, n: int) -> np.ndarray:

@@ -3,14 +3,10 @@ the suite but kept out of the issue's targets, and the suite's rows are unchange
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
-sys.path.insert(0, str(BENCHMARKS))
-
-import unseen_envs  # noqa: E402
-from common import save_record  # noqa: E402
+from benchmarks import unseen_envs
+from benchmarks.common import save_record
 
 
 def _save_run(out: Path, agent: str, env: str, seed: int, final: float, curve: dict[int, float] | None = None) -> None:

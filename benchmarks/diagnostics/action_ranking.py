@@ -14,8 +14,8 @@ mean over the actions (what the greedy step compares), their correlation, the sp
 true and of the model's gaps (std) and the RMS of their difference; and the share of states at
 which the model's best action is the true best. Writes results/<stem>.md.
 
-    python benchmarks/action_ranking.py                     # InvertedPendulum-v5, seeds 0-2
-    python benchmarks/action_ranking.py --kwargs '{"gamma": 0.95}' --stem action_ranking_gamma95
+    python -m benchmarks.diagnostics.action_ranking                     # InvertedPendulum-v5, seeds 0-2
+    python -m benchmarks.diagnostics.action_ranking --kwargs '{"gamma": 0.95}' --stem action_ranking_gamma95
 """
 
 from __future__ import annotations
@@ -27,8 +27,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import torch
-from common import add_seed_arguments, command_line, map_seeds, markdown_table, seed_table, write_markdown
 
+from benchmarks.common import add_seed_arguments, command_line, map_seeds, markdown_table, seed_table, write_markdown
 from cme_agent import CMEPolicyIteration
 
 METRICS = ("r2", "centred_corr", "best_agrees", "true_gap_std", "model_gap_std", "gap_rmse")
@@ -55,7 +55,7 @@ def one_step_values(
     agent: CMEPolicyIteration, env: gym.Env, states: list[tuple[np.ndarray, ...]], actions: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Q under the simulator and under the model at every state and action: two (n_states, n_actions) arrays."""
-    dynamics, weights, gamma = agent.dynamics, agent._value_weights, agent.gamma
+    dynamics, weights, gamma = agent.dynamics, agent.evaluator.value_weights, agent.gamma
     true_q, model_q = np.empty((len(states), len(actions))), np.empty((len(states), len(actions)))
     action_batch = torch.as_tensor(actions, dtype=torch.float32)
     for i, (qpos, qvel, obs) in enumerate(states):

@@ -10,7 +10,7 @@ share of them outside the box and the largest |z| (z the normalised coordinate, 
 the box). Envs with finite, usable bounds use those and are reported as such. Writes
 results/box_coverage.md.
 
-    python benchmarks/box_coverage.py [--envs PointGoal2D-v0 InvertedPendulum-v5] [--steps 3000] [--seed 0]
+    python -m benchmarks.diagnostics.box_coverage [--envs PointGoal2D-v0 InvertedPendulum-v5] [--steps 3000] [--seed 0]
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ from __future__ import annotations
 import argparse
 
 import torch
-import unseen_envs
-from common import command_line, markdown_table, write_markdown
 
+from benchmarks import unseen_envs
+from benchmarks.common import command_line, markdown_table, write_markdown
 from cme_agent import CMEPolicyIteration
 
 

@@ -6,7 +6,7 @@ CartPole's preset evaluates on |C| = 2,000 states with p = 2,836 features, so ea
 Gram product (:func:`~cme_agent.linalg.lower_gram`); thread CPU seconds, 1 torch thread, the best
 of ``--repeats`` alternated runs. Writes results/dual_solve.md.
 
-    python benchmarks/dual_solve.py [--rows 2000] [--width 2836] [--repeats 5]
+    python -m benchmarks.diagnostics.dual_solve [--rows 2000] [--width 2836] [--repeats 5]
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ import argparse
 import time
 
 import torch
-from common import command_line, markdown_table, write_markdown
 
+from benchmarks.common import command_line, markdown_table, write_markdown
 from cme_agent.linalg import cholesky_, cholesky_solve, lower_gram
 
 

@@ -9,7 +9,7 @@ the pole's angle beyond 12 degrees), with the mean |observation| over all steps 
 It tells a policy that drops the pole from one that balances it and lets the cart drift off the
 track. Writes results/<stem>.md and results/<stem>.csv.
 
-    python benchmarks/episode_endings.py --env cartpole --seed 2 --steps 7000
+    python -m benchmarks.diagnostics.episode_endings --env cartpole --seed 2 --steps 7000
 """
 
 from __future__ import annotations
@@ -20,8 +20,9 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-from common import command_line, markdown_table, write_report
-from learning_quality import PERIOD, train_with_evaluations
+
+from benchmarks.common import command_line, markdown_table, write_report
+from benchmarks.learning_quality import PERIOD, train_with_evaluations
 
 TERMINATION_BOUNDS: dict[str, dict[str, tuple[int, float]]] = {
     "cartpole": {"cart position": (0, 2.4), "pole angle": (2, 12 * 2 * np.pi / 360)},

@@ -10,7 +10,7 @@ and after each block, and once before the first, measures
   random starts (as learning_quality.py);
 - ``value_bias``: the model's one-step optimism in the policy's value on those episodes, and
   ``slope``: the share of the true feature change the model predicts there
-  (benchmarks/model_exploitation.py);
+  (benchmarks/diagnostics/model_exploitation.py);
 - ``changed``: the share of 1,000 fixed states of D whose greedy action differs from the policy
   the training ended with.
 
@@ -20,7 +20,7 @@ rises as the return falls is the planner exploiting the model's error. Writes
 results/<stem>.md and .csv (one row per measurement); each finished seed is kept in results/<stem>/ (rerun the same
 command to resume; ``--report-only`` rewrites the report).
 
-    python benchmarks/fixed_model_planning.py --env pendulum --seeds 0 1 2 3 4 5 6 7 8 9 --workers 2
+    python -m benchmarks.diagnostics.fixed_model_planning --env pendulum --seeds 0 1 2 3 4 5 6 7 8 9 --workers 2
 """
 
 from __future__ import annotations
@@ -34,11 +34,11 @@ from typing import Any
 
 import numpy as np
 import torch
-from common import RESULTS, command_line, compose_config, markdown_table, run_recorded, write_report
-from learning_quality import TARGETS
-from model_exploitation import evaluate_with_model_errors
 from stable_baselines3.common.logger import configure
 
+from benchmarks.common import RESULTS, command_line, compose_config, markdown_table, run_recorded, write_report
+from benchmarks.diagnostics.model_exploitation import evaluate_with_model_errors
+from benchmarks.learning_quality import TARGETS
 from cme_agent.experiment import build_agent, make_env, make_eval_env
 
 PROBE_STATES = 1_000
@@ -117,7 +117,7 @@ def report(env: str, curves: list[list[dict[str, Any]]], seeds: list[int], runs:
             f"Each seed trains its env's config, then plans on the frozen model (no data, no features, no model "
             f"update) in blocks of {rounds[1] if blocks > 1 else 0} evaluation/improvement rounds; after each block "
             "the deterministic policy flies 10 episodes from the seed's fixed random starts "
-            f"(benchmarks/fixed_model_planning.py). Wall-clock {wall:.0f} s with {workers} workers.",
+            f"(benchmarks/diagnostics/fixed_model_planning.py). Wall-clock {wall:.0f} s with {workers} workers.",
             "",
             f"**After {rounds[-1]} more rounds on the same model the return moved by more than {MOVED:g}: up on "
             f"{up} seeds, down on {down}, within {MOVED:g} on {len(curves) - up - down}** "

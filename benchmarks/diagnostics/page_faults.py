@@ -4,7 +4,7 @@ told to keep freed memory (``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_TRIM_THRESHOLD_`
 ``MALLOC_TOP_PAD_``: a setting of the user's process, which the library leaves alone).
 Alternated runs, 1 torch thread. Writes results/page_faults.md.
 
-    python benchmarks/page_faults.py [--repeats 2] [--steps 2000]
+    python -m benchmarks.diagnostics.page_faults [--repeats 2] [--steps 2000]
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import subprocess
 import sys
 import tempfile
 
-from common import ROOT, command_line, markdown_table, write_markdown
+from benchmarks.common import ROOT, command_line, markdown_table, write_markdown
 
 CHILD = r"""
 import json, resource, sys, time

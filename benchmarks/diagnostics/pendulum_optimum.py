@@ -8,8 +8,8 @@ candidate torques, then flies that optimal policy through the same protocol (``e
 on the seed's evaluation env), and sets each seed's optimum beside the final returns of a
 ``benchmarks/learning_quality.py`` run:
 
-    python benchmarks/pendulum_optimum.py --compare learning_quality_pendulum_1dc5c62
-    python benchmarks/pendulum_optimum.py --grid 181 161 --stem pendulum_optimum_coarse   # the grid check
+    python -m benchmarks.diagnostics.pendulum_optimum --compare learning_quality_pendulum_1dc5c62
+    python -m benchmarks.diagnostics.pendulum_optimum --grid 181 161 --stem pendulum_optimum_coarse   # the grid check
 
 Writes ``results/<stem>.md``.
 """
@@ -23,9 +23,9 @@ import time
 from collections.abc import Sequence
 
 import numpy as np
-from common import RESULTS, command_line, compose_config, markdown_table, write_markdown
 from stable_baselines3.common.evaluation import evaluate_policy
 
+from benchmarks.common import RESULTS, command_line, compose_config, markdown_table, write_markdown
 from cme_agent.experiment import make_eval_env
 
 GRAVITY, TIME_STEP, MAX_SPEED, MAX_TORQUE, HORIZON = 10.0, 0.05, 8.0, 2.0, 200

@@ -8,7 +8,7 @@ an additive grid (sums of 1-D bumps, (p - 1) / d per dim), and random Fourier fe
 fixed length scale 0.3 (the former default), at c sqrt(d) and at the
 default max(0.3, 0.1 d).
 
-    python benchmarks/phi_basis.py            # prints one line per (d, target)
+    python -m benchmarks.diagnostics.phi_basis            # prints one line per (d, target)
 """
 
 from __future__ import annotations

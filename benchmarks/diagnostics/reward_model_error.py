@@ -1,6 +1,6 @@
 """The learned reward's error along a run on PointGoal2D-v0 (a diagnostic, issue 14).
 
-PointGoal2D-v0 (``benchmarks/unseen_envs.py``) is the unseen-env suite's env whose reward comes
+PointGoal2D-v0 (``cme_agent/envs/point_goal.py``) is the unseen-env suite's env whose reward comes
 only from the env, so the agent learns it as B's reward row; its true expected reward is known
 in closed form (``true_reward``). Trains ``CMEPolicyIteration("CMEPolicy", "PointGoal2D-v0")``
 with ``--kwargs`` and, every 1,000 env steps, evaluates the deterministic policy (10 episodes,
@@ -10,8 +10,8 @@ random actions and with the agent's own (greedy) actions: mean (bias), mean abso
 error. Positive errors at greedy actions are what the planner exploits. Writes
 results/<stem>.md and results/<stem>.csv.
 
-    python benchmarks/reward_model_error.py --seed 2 --steps 16000 --stem reward_model_error_pg_s2
-    python benchmarks/reward_model_error.py --seed 2 --kwargs '{"model_update": {"l2": 0.001}}' --stem ...
+    python -m benchmarks.diagnostics.reward_model_error --seed 2 --steps 16000 --stem reward_model_error_pg_s2
+    python -m benchmarks.diagnostics.reward_model_error --seed 2 --kwargs '{"model_update": {"l2": 0.001}}' --stem ...
 """
 
 from __future__ import annotations
@@ -22,12 +22,13 @@ from typing import Any
 
 import gymnasium as gym
 import torch
-from common import command_line, markdown_table, write_report
-from learning_quality import episode_returns
 from stable_baselines3.common.callbacks import BaseCallback
-from unseen_envs import CUSTOM_ENV, EVAL_SEED_OFFSET, PointGoal2D  # importing it registers PointGoal2D-v0
 
+from benchmarks.common import command_line, markdown_table, write_report
+from benchmarks.learning_quality import episode_returns
+from benchmarks.unseen_envs import CUSTOM_ENV, EVAL_SEED_OFFSET
 from cme_agent import CMEPolicyIteration
+from cme_agent.envs.point_goal import PointGoal2D
 
 STATES = 2000
 """States of each kind (from D, uniform over the box) the error is measured at."""

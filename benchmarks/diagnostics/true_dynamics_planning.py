@@ -1,6 +1,6 @@
 """Is it the model or the planner? The agent's planning step redone with the true dynamics.
 
-PointGoal2D-v0 (``benchmarks/unseen_envs.py``) has its dynamics and reward in closed form
+PointGoal2D-v0 (``cme_agent/envs/point_goal.py``) has its dynamics and reward in closed form
 (``PointGoal2D.transition``). This script trains ``CMEPolicyIteration("CMEPolicy",
 "PointGoal2D-v0", seed=seed)`` (library defaults, plus ``--kwargs``) for ``--steps`` env steps,
 draws a collection C as the agent does (``draw_collection``: a ``uniform_fraction`` of it uniform
@@ -25,7 +25,7 @@ over the observation box, the rest from D) and takes the agent's greedy policy p
 
 Writes results/<stem>.md.
 
-    python benchmarks/true_dynamics_planning.py --seeds 0 1 2 --steps 5000
+    python -m benchmarks.diagnostics.true_dynamics_planning --seeds 0 1 2 --steps 5000
 """
 
 from __future__ import annotations
@@ -37,11 +37,12 @@ from typing import Any
 
 import numpy as np
 import torch
-from common import add_seed_arguments, command_line, map_seeds, markdown_table, seed_table, write_markdown
 from stable_baselines3.common.env_util import make_vec_env
-from unseen_envs import CUSTOM_ENV, EVAL_EPISODES, EVAL_SEED_OFFSET, PointGoal2D, evaluate
 
+from benchmarks.common import add_seed_arguments, command_line, map_seeds, markdown_table, seed_table, write_markdown
+from benchmarks.unseen_envs import CUSTOM_ENV, EVAL_EPISODES, EVAL_SEED_OFFSET, evaluate
 from cme_agent import CMEPolicyIteration
+from cme_agent.envs.point_goal import PointGoal2D
 from cme_agent.planning import bellman_residual_weights
 
 METRICS = (
