@@ -23,7 +23,8 @@ OmegaConf.register_new_resolver("cme_run_dir", resume_run_dir, replace=True)
 def main(cfg: DictConfig) -> float:
     """Hydra entry point; returns the final evaluation return (the objective of sweepers)."""
     hydra_cfg = HydraConfig.get()
-    return run(cfg, Path(hydra_cfg.runtime.output_dir), hydra_cfg.overrides.task, sys.argv[0])["eval_mean_reward"]
+    run_dir = Path(hydra_cfg.runtime.output_dir)
+    return run(cfg, run_dir, hydra_cfg.overrides.task, sys.argv[0], hydra_cfg.runtime.choices)["eval_mean_reward"]
 
 
 if __name__ == "__main__":

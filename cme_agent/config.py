@@ -2,8 +2,8 @@
 
 Each group is a frozen dataclass that checks its values on construction, so a bad value fails
 when the agent is built, with an error that names the key, the value and the allowed range.
-The groups mirror ``conf/agent/cme.yaml``; plain dicts (from Hydra or Python) are converted by
-:func:`build_config`.
+``conf/agent/cme.yaml`` lists every field at its default (a test keeps the two equal); plain
+dicts (from Hydra or Python) are converted by :func:`build_config`.
 """
 
 from __future__ import annotations
@@ -78,9 +78,8 @@ class AgentConfig:
     :param steps_per_iteration: m, env steps collected per iteration (all envs together)
     """
 
-    # Defaults for an env without a preset (every preset pins its own gamma and omega), chosen on
-    # InvertedPendulum-v5 at 5,000 steps, 10 seeds (results/lq_inverted_pendulum*.md): gamma 0.95
-    # and omega 0.2 doubled the final return of 0.98 and 0.5 (134.3 +- 81.4 vs 67.5 +- 39.9)
+    # defaults for an env without a preset (every preset pins its own gamma and omega): on an
+    # unseen env (InvertedPendulum-v5) 0.95 and 0.2 learned more than 0.98 and 0.5
     gamma: float = 0.95
     omega: float = 0.2
     steps_per_iteration: int = 200
@@ -102,9 +101,8 @@ class FeatureSelectionConfig:
         current residual energy
     :param max_features: cap on the features added per iteration
     :param max_total_features: budget on q: once reached no feature is added, so the cost of an
-        iteration stops growing altogether (None or ``inf``: no budget; in a preset, Hydra
-        config or :func:`cme_agent.presets.merge_settings`, where None means 'not given',
-        write ``inf``)
+        iteration stops growing altogether (``inf``: no budget; ``math.inf`` in Python, ``.inf``
+        in YAML, ``inf`` on the command line. None is refused: it means 'not given' everywhere)
     :param subsample_size: size of the random subsample of D the residual is measured on
     :param theta: step theta_k in [0, 1] applied to the new weights, B_k = (B_{k-1}, theta B_new)
     :param orthogonal: refit the weights of the picked atoms jointly by least squares
@@ -125,12 +123,11 @@ class FeatureSelectionConfig:
     bandwidths: tuple[float, ...] = (0.15, 0.3, 0.6)
     threshold: float = 0.002
     max_features: int = 80
-    max_total_features: int | float | None = 2000
+    max_total_features: int | float = 2000
     subsample_size: int = 2000
     theta: float = 1.0
     orthogonal: bool = False
-    # InvertedPendulum-v5, 5,000 steps, seeds 0-9: 0.2 ends at 448.7 +- 357.5 with 1/10 seeds at 950,
-    # 1.0 at 395.9 +- 420.0 with 3/10 (probe_ip_ascale02, probe_ip_expand_new): not the default on an unseen env
+    # 1.0: the presets' 0.2 (kernels 5x wider in the action) was not reliably better on an unseen env
     action_scale: float = 1.0
     control_affine: bool = False
 
@@ -141,8 +138,13 @@ class FeatureSelectionConfig:
             check_positive("feature_selection.bandwidths", bandwidth)
         check_unit_interval("feature_selection.threshold", self.threshold, open_low=True, open_high=True)
         check_positive_int("feature_selection.max_features", self.max_features)
-        if self.max_total_features is not None and self.max_total_features != math.inf:
-            check_positive_int("feature_selection.max_total_features", self.max_total_features)
+        budget = self.max_total_features
+        check(
+            "feature_selection.max_total_features",
+            budget,
+            budget == math.inf or (isinstance(budget, int) and not isinstance(budget, bool) and budget >= 1),
+            "an integer >= 1, or inf (write inf for no budget)",
+        )
         check_positive_int("feature_selection.subsample_size", self.subsample_size)
         check_unit_interval("feature_selection.theta", self.theta, open_low=True)
         check_positive("feature_selection.action_scale", self.action_scale)
@@ -165,8 +167,7 @@ class ModelUpdateConfig:
         from its normal equations on ``refit_size`` transitions of D, all of D while it holds
         fewer: O(refit_size q (q + p) + q^3) an iteration, flat in |D|) or ``"sgd"`` (eq. (6),
         the paper's online update: ``n_steps`` minibatch steps from the current B). The exact
-        fit is the default: 10 seeds each, CartPole-v1 10/10 at 475 by a median of 2,000 env
-        steps against 9/10 by 5,000, Acrobot-v1 -115.0 against -139.5 (docs/results.md)
+        fit is the default: it learned faster than SGD on CartPole-v1 and Acrobot-v1
     :param refit_size: transitions of D that ``method="ridge"`` fits B on, and that B is refit
         on when the observation box expands
     :param n_steps: SGD steps per iteration (each on a minibatch drawn from D)
@@ -327,10 +328,8 @@ class ImprovementConfig:
     """
 
     method: str = "smoothed_greedy"
-    # Pendulum-v1 preset, 6,000 steps, final returns on 10 fixed starts (issue 15's first A/B, one run per seed):
-    # beta 0.5, decay 0.9: -191, -173, -163, -133, -277 (seeds 0-4); 0.5, 0.95: -202, -135, -180;
-    # 1.0, 0.9: -138, -137, -654; 0.1, 1 (the plain sum): -659, -163, -701, it learns too slowly
-    # (estimates of early, poor models keep their weight); smoothed greedy: -137, -139, -533, -136, -173
+    # beta 0.5, decay 0.9 (on Pendulum-v1's preset): beta 1.0 collapsed on a seed; the plain sum
+    # (decay 1) learns too slowly, as the estimates of early, poor models keep their weight
     beta: float = 0.5
     scale: str = "spread"
     decay: float = 0.9
@@ -440,16 +439,8 @@ class ActionSearchConfig:
     """
 
     # 3 per dim (full push either way, or none): the greedy step ranks far-apart actions, where the
-    # model's errors matter less than between neighbours of a fine grid. InvertedPendulum-v5, 10
-    # seeds, 5,000 steps, gamma 0.95, omega 0.2 (results/probe_ip_g95o2_k*.md,
-    # lq_inverted_pendulum_g95_o02.md): 3 candidates 335.8 +- 361.1, 5: 109.5 +- 36.6, 21: 134.3 +-
-    # 81.4, 2 (no zero): 109.4 +- 48.7; seeds 10-19: 3 candidates 342.9 +- 322.6, 21: 84.0 +- 26.2.
-    # Reacher-v5 is worse with 3 (-12.1 vs -8.8, results/unseen_envs.md: its control cost wants small
-    # torques). Pendulum-v1's preset keeps 21 (5 ended at -323 +- 150 there). 2-D actions, 5 x 5
-    # against 3 x 3, 20,000 steps, unseen-suite protocol (results/unseen_envs_*grid5.md): better on
-    # every seed on PointGoal2D-v0 (-27.9 vs -38.8) and the held-out Swimmer-v5 (37.9 vs 31.4, 3
-    # seeds), level on Reacher-v5, worse on the held-out LunarLanderContinuous-v3 (-209.4 vs -151.7,
-    # 4 of 5 seeds): not a default.
+    # model's errors matter less than between neighbours of a fine grid (an env whose control cost
+    # wants small actions, or a preset such as Pendulum-v1's, sets more)
     grid_size: int = 3
     grid_points: tuple[float, ...] | None = None
     max_grid_dims: int = 2
@@ -509,10 +500,7 @@ class ObservationConfig:
     :param expand_after: expand only when this many successive iterations had more than
         ``expand_outside`` of their new observations outside, to cover all of theirs (1: the
         first such iteration expands it; 2, the default: one policy's excursion that the next
-        policy does not repeat leaves the box, and phi's resolution, as they are. Measured
-        against 1, docs/results.md: InvertedPendulum-v5 at 5,000 steps 5/10 seeds at 950
-        against 2/10 on seeds 10-19 in one A/B, the point-goal env's worst seed -55 against
-        -170 at 20,000, Reacher-v5 alike; Acrobot-v1's preset keeps 1)
+        policy does not repeat leaves the box, and phi's resolution, as they are)
     :param max_expansions: at most this many expansions per run (0: the first box is final)
     """
 

@@ -7,7 +7,7 @@ import logging
 import shlex
 import signal
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +31,7 @@ from cme_agent.callbacks import (
     TrainingAbandonedError,
 )
 from cme_agent.pictures import PictureCallback
+from cme_agent.presets import preset_for
 from cme_agent.run_log import configure_run_logger
 
 log = logging.getLogger(__name__)  # under Hydra: stdout and the run directory's train.log
@@ -38,6 +39,46 @@ log = logging.getLogger(__name__)  # under Hydra: stdout and the run directory's
 # SIGINT: Ctrl-C; SIGTERM: kill's default and SLURM's preemption; SIGUSR2: submitit_slurm's warning
 # signal_delay_s before the time limit
 STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGUSR2") if hasattr(signal, name))
+
+
+PRESET_CHOICE = "presets@agent"
+"""The config group under which Hydra composes an env's preset into ``agent``
+(``conf/agent_env/cme_<env>.yaml``: ``/presets@agent: <env id>``)."""
+
+
+def preset_line(cfg: DictConfig, choices: Mapping[str, Any], overrides: Sequence[str] = ()) -> str:
+    """The log line saying which preset file Hydra composed into ``cfg.agent``, if any, and which
+    of its keys the command line overrode.
+
+    :param cfg: the composed config
+    :param choices: the config group choices of the composition (Hydra's ``runtime.choices``)
+    :param overrides: the run's command-line overrides (Hydra's ``overrides.task``)
+    """
+    name = choices.get(PRESET_CHOICE)
+    if name is None:
+        return f"No tuned preset composed for {cfg.env.id}: the library defaults (conf/agent/cme.yaml) and your overrides"
+    line = f"Applied the tuned preset cme_agent/presets/{name}.yaml (composed by Hydra)"
+    if name != cfg.env.id:
+        line += f" to {cfg.env.id}"
+    preset_keys = _dotted_keys(preset_for(name) or {})
+    given = sorted({item.split("=", 1)[0].lstrip("+~") for item in overrides})
+    overridden = [
+        key
+        for key in given
+        if key.startswith("agent.")
+        and any(leaf == key[6:] or leaf.startswith(f"{key[6:]}.") or key[6:].startswith(f"{leaf}.") for leaf in preset_keys)
+    ]
+    if overridden:
+        line += f"; your overrides of {', '.join(overridden)} win over it"
+    return line
+
+
+def _dotted_keys(settings: Mapping[str, Any], prefix: str = "") -> list[str]:
+    """Dotted names of the non-mapping values of nested settings (``evaluation.collection_size``)."""
+    keys: list[str] = []
+    for key, value in settings.items():
+        keys += _dotted_keys(value, f"{prefix}{key}.") if isinstance(value, Mapping) else [f"{prefix}{key}"]
+    return keys
 
 
 def resume_run_dir(resume: str | None, default: str) -> str:
@@ -107,7 +148,13 @@ def evaluate(model: BaseAlgorithm, cfg: DictConfig) -> tuple[float, float]:
     return float(mean), float(std)
 
 
-def run(cfg: DictConfig, run_dir: Path, overrides: Sequence[str] = (), script: str = "train.py") -> dict[str, Any]:
+def run(
+    cfg: DictConfig,
+    run_dir: Path,
+    overrides: Sequence[str] = (),
+    script: str = "train.py",
+    choices: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
     """Train the agent of ``cfg`` on its env, evaluating it every ``cfg.eval_every`` steps and at
     the end, and write into ``run_dir`` the TensorBoard events, ``progress.csv``,
     ``evaluations.npz``, ``model.zip`` and ``summary.json``.
@@ -121,6 +168,8 @@ def run(cfg: DictConfig, run_dir: Path, overrides: Sequence[str] = (), script: s
     :param run_dir: the run directory
     :param overrides: the run's command-line overrides (for the resume command)
     :param script: the Hydra app as invoked (for the resume command)
+    :param choices: the config group choices of the composition (Hydra's ``runtime.choices``), to
+        log which env preset was composed into a CME agent's settings (None: not logged)
     :return: the summary
     """
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -128,6 +177,8 @@ def run(cfg: DictConfig, run_dir: Path, overrides: Sequence[str] = (), script: s
         torch.set_num_threads(cfg.torch_threads)
     env = make_env(cfg)
     model = resume_agent(cfg, env) if cfg.resume else build_agent(cfg, env)
+    if choices is not None and not cfg.resume and isinstance(model, CMEPolicyIteration):
+        log.info(preset_line(cfg, choices, overrides))
     model.set_logger(configure_run_logger(run_dir, cfg.verbose, model.num_timesteps if cfg.resume else None))
     try:
         evaluation = PeriodicEvaluation(

@@ -1,5 +1,7 @@
 """Clear words: a scalar where a list is expected, and invalid combinations, name the key."""
 
+import math
+
 import pytest
 
 from cme_agent import CMEPolicyIteration
@@ -75,12 +77,16 @@ def test_phi_settings_are_range_checked():
         ObservationConfig(quantile=0.5)
 
 
-def test_no_feature_budget_can_be_written_as_inf():
-    """None means 'not given' in presets and Hydra configs, so 'no budget on q' is also spelled inf."""
+def test_no_feature_budget_is_written_inf():
+    """None means 'not given' everywhere, so 'no budget on q' is spelled inf only."""
     assert build_config(
         FeatureSelectionConfig, {"max_total_features": float("inf")}, "feature_selection"
     ).max_total_features == float("inf")
-    assert FeatureSelectionConfig(max_total_features=None).max_total_features is None
+    assert FeatureSelectionConfig(max_total_features=math.inf).max_total_features == math.inf
+    with pytest.raises(ValueError, match=r"feature_selection\.max_total_features=None is invalid: .*write inf for no budget"):
+        FeatureSelectionConfig(max_total_features=None)
+    with pytest.raises(ValueError, match=r"feature_selection\.max_total_features=-inf is invalid"):
+        FeatureSelectionConfig(max_total_features=-math.inf)
     with pytest.raises(ValueError, match=r"feature_selection\.max_total_features=2\.5 is invalid"):
         FeatureSelectionConfig(max_total_features=2.5)
 

@@ -34,7 +34,7 @@ def test_env_config_composes_into_an_agent(env_name, agent_name):
     env = make_env(cfg)
     agent = instantiate(cfg.agent, env=env, seed=0, _convert_="all")
     assert type(agent).__name__ == cfg.agent._target_.rsplit(".", 1)[1]
-    assert agent.gamma == (cfg.agent.gamma or preset_for(cfg.env.id).get("gamma", AgentConfig().gamma))
+    assert agent.gamma == cfg.agent.gamma == preset_for(cfg.env.id).get("gamma", AgentConfig().gamma)
     assert agent.policy.dynamics.phi.width > 1
     env.close()
 
@@ -50,13 +50,14 @@ def test_eval_env_follows_the_config_and_its_starts_the_seed():
 
 
 def test_presets_apply_and_command_line_overrides_win():
-    """The Hydra config holds no second copy of the presets: the agent it builds takes them from
-    cme_agent.presets, and what the command line sets wins."""
+    """The Hydra config holds no second copy of the presets: it composes the package's preset file
+    (cme_agent/presets/<env id>.yaml) into the agent's settings, and what the command line sets wins."""
     cfg = _compose(["env=pendulum", "agent.gamma=0.95"])
-    assert cfg.agent.policy_kwargs.phi.resolution is None  # not given: the preset's
+    assert list(cfg.agent.policy_kwargs.phi.resolution) == preset_for("Pendulum-v1")["policy_kwargs"]["phi"]["resolution"]
     agent = instantiate(cfg.agent, env=cfg.env.id, seed=0, _convert_="all")
     assert agent.policy.dynamics.phi.width == 21 * 15 + 1 and agent.omega == 0.2  # the preset
     assert agent.gamma == 0.95  # the override
+    assert agent.preset_message is None  # composed by Hydra: the agent does not apply the preset again
     cartpole = _compose(["env=cartpole"])
     assert instantiate(cartpole.agent, env=cartpole.env.id, seed=0, _convert_="all").gamma == 0.995
 
@@ -79,6 +80,8 @@ def test_train_writes_events_model_and_summary(tmp_path):
     assert list(tmp_path.glob("events.out.tfevents.*"))
     assert (tmp_path / "model.zip").exists() and (tmp_path / "progress.csv").exists()
     assert "return" in result.stdout
+    preset_line = "Applied the tuned preset cme_agent/presets/Pendulum-v1.yaml (composed by Hydra)"
+    assert f"{preset_line}; your overrides of agent.evaluation.collection_size win over it" in result.stdout
 
 
 @pytest.mark.parametrize(

@@ -1,4 +1,5 @@
-"""The preset registry: one source of truth for per-env settings, merged under the user's."""
+"""The preset registry: one source of truth for per-env settings, merged under the user's; the
+package's preset files are what Hydra composes, over conf/agent/cme.yaml's library defaults."""
 
 import dataclasses
 from pathlib import Path
@@ -6,9 +7,11 @@ from pathlib import Path
 import gymnasium as gym
 import pytest
 import yaml
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 
 import cme_agent  # noqa: F401  (registers Quadcopter-v0 and ToyChain-v0)
-from cme_agent.config import EvaluationConfig, ObservationConfig, StateFeatureConfig, build_config
+from cme_agent.config import AgentConfig, EvaluationConfig, ObservationConfig, StateFeatureConfig, build_config
 from cme_agent.encoding import ObservationEncoder
 from cme_agent.presets import (
     GROUPS,
@@ -16,6 +19,7 @@ from cme_agent.presets import (
     apply_preset,
     check_settings,
     merge_settings,
+    preset_files,
     preset_for,
     register_preset,
     registered_presets,
@@ -28,8 +32,8 @@ ENV_IDS = {path.stem: yaml.safe_load(path.read_text())["env"]["id"] for path in 
 
 OLD_OBSERVATION_FACTS = {
     "Pendulum-v1": {"angle_pairs": [[0, 1]]},
-    # since 2026-12 the velocity dims' box is estimated from data (max_half_range below their bounds),
-    # expanded as soon as an iteration outgrows it
+    # the velocity dims' box is estimated from data (max_half_range below their bounds), expanded
+    # as soon as an iteration outgrows it
     "Acrobot-v1": {"angle_pairs": [[0, 1], [2, 3]], "max_half_range": 5.0, "expand_after": 1},
     "CartPole-v1": {"low": [-2.4, -3.0, -0.21, -3.5], "high": [2.4, 3.0, 0.21, 3.5]},
 }
@@ -164,20 +168,95 @@ def test_register_preset_checks_and_replaces(monkeypatch):
     assert preset_for("MyEnv-v0") == {"gamma": 0.9, "evaluation": {"rounds": 2}}
 
 
-def test_the_hydra_agent_config_lists_every_setting_and_reads_the_presets():
-    """conf/agent/cme.yaml: every config field as null, so a composed config is the preset plus overrides."""
-    proposed = yaml.safe_load((ROOT / "conf" / "agent" / "cme.yaml").read_text())
-    for group, cls in GROUPS.items():
-        assert set(proposed[group]) == {f.name for f in dataclasses.fields(cls)}, group
-    for group, cls in POLICY_GROUPS.items():
-        assert set(proposed["policy_kwargs"][group]) == {f.name for f in dataclasses.fields(cls)}, group
-    run_switches = ("reset_envs_each_iteration",)  # how a run goes, not a tuned setting: explicit in the YAML
-    user = {key: value for key, value in proposed.items() if key not in ("_target_", "policy", *run_switches)}
-    assert all(value is None for _, value in _leaves(user))
-    user["evaluation"]["rounds"] = 3  # a command-line override
-    settings, _ = apply_preset("Pendulum-v1", user)
-    check_settings(settings)
-    assert settings["omega"] == 0.2 and settings["evaluation"] == {"collection_size": 8000, "rounds": 3}
+def _defaults(cls):
+    """A config dataclass's fields and defaults, as plain YAML values."""
+    return {name: _plain(value) for name, value in dataclasses.asdict(cls()).items()}
+
+
+def _cme_yaml():
+    return OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / "agent" / "cme.yaml"))
+
+
+RUN_SWITCHES = {"_target_": "cme_agent.CMEPolicyIteration", "policy": "CMEPolicy", "reset_envs_each_iteration": False}
+"""conf/agent/cme.yaml's keys that are not settings of the config dataclasses (besides ``preset``)."""
+
+
+def test_the_hydra_agent_config_lists_every_setting_at_its_library_default():
+    """conf/agent/cme.yaml: every field of the config dataclasses with its default, so the file cannot drift."""
+    config = _cme_yaml()
+    assert set(config) == {*RUN_SWITCHES, "preset", *AgentConfig.__dataclass_fields__, *GROUPS, "policy_kwargs"}
+    assert {key: config[key] for key in RUN_SWITCHES} == RUN_SWITCHES
+    assert config["preset"] is False  # Hydra composes the preset (conf/agent_env/cme_<env>.yaml); the agent must not again
+    expected = {
+        **{key: _defaults(AgentConfig)[key] for key in AgentConfig.__dataclass_fields__},
+        **{group: _defaults(cls) for group, cls in GROUPS.items()},
+        "policy_kwargs": {group: _defaults(cls) for group, cls in POLICY_GROUPS.items()},
+    }
+    # the ridge of model_update.l2 is derived from the method (None in the dataclass, written in on construction)
+    expected["model_update"]["l2"] = None
+    actual = {key: value for key, value in config.items() if key not in (*RUN_SWITCHES, "preset")}
+    assert actual == expected
+    for name, value in _leaves(actual):  # 1 is not 1.0: YAML's types match the dataclasses'
+        default = _lookup(expected, name)
+        assert type(value) is type(default), (name, value, default)
+
+
+def _compose(overrides):
+    with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
+        return compose(config_name="config", overrides=overrides)
+
+
+@pytest.mark.parametrize("agent", ["cme", "kernel"])
+@pytest.mark.parametrize("env_name", sorted(ENV_IDS))
+def test_hydra_composes_the_package_preset_over_the_library_defaults(env_name, agent):
+    """Hydra reads the package's preset file (conf/agent_env/<agent>_<env>.yaml): the composed agent
+    holds the preset's values, the library defaults elsewhere; the agent does not apply it again."""
+    cfg = _compose([f"env={env_name}", f"agent={agent}"])
+    composed = OmegaConf.to_container(cfg.agent)
+    assert composed["preset"] is False
+    preset = preset_for(ENV_IDS[env_name])
+    for name, value in _leaves(preset):
+        if agent == "kernel" and name == "steps_per_iteration":
+            continue  # conf/agent_env/kernel_toy.yaml sets its own
+        assert _plain(_lookup(composed, name)) == _plain(value), name
+    defaults = _cme_yaml()
+    preset_names = {name for name, _ in _leaves(preset)}
+    for name, value in _leaves(defaults):
+        if name not in preset_names and name not in ("_target_", "steps_per_iteration"):
+            assert _lookup(composed, name) == value, name
+
+
+def test_command_line_overrides_win_over_the_composed_preset():
+    cfg = _compose(["env=pendulum", "agent.gamma=0.9", "agent.evaluation.rounds=3", "agent.evaluation.collection_size=500"])
+    assert cfg.agent.gamma == 0.9 and cfg.agent.evaluation.rounds == 3 and cfg.agent.evaluation.collection_size == 500
+    assert cfg.agent.omega == 0.2 and list(cfg.agent.policy_kwargs.phi.resolution) == [21, 15]  # the preset's
+
+
+def test_without_a_preset_the_library_defaults_apply():
+    """An env config without conf/agent_env/cme_<env>.yaml (here: the entry removed) gets cme.yaml's defaults."""
+    cfg = _compose(["env=pendulum", "~agent_env"])
+    agent = OmegaConf.to_container(cfg.agent)
+    assert agent == _cme_yaml()
+
+
+def test_the_preset_files_are_the_registered_presets_and_load_as_hydra_reads_them():
+    files = preset_files()
+    assert set(files) == set(registered_presets())
+    for env_id, file in files.items():
+        assert _plain(OmegaConf.to_container(OmegaConf.create(file.read_text()))) == _plain(preset_for(env_id)), env_id
+        assert yaml.safe_load(file.read_text()) == preset_for(env_id), env_id  # plain YAML reads the same values
+
+
+def test_a_bad_preset_file_is_refused_naming_it(tmp_path):
+    from cme_agent.presets import load_preset_file
+
+    bad = tmp_path / "MyEnv-v0.yaml"
+    bad.write_text("evaluation:\n  rounds: 0\n")
+    with pytest.raises(ValueError, match=r"evaluation\.rounds=0 is invalid"):
+        load_preset_file(bad, "MyEnv-v0")
+    bad.write_text("gama: 0.9\n")
+    with pytest.raises(ValueError, match=r"preset of 'MyEnv-v0' \(MyEnv-v0\.yaml\) has unknown key\(s\) \['gama'\]"):
+        load_preset_file(bad, "MyEnv-v0")
 
 
 def test_top_level_settings_are_checked_and_defaulted_by_agent_config():

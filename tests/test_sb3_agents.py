@@ -1,5 +1,6 @@
 """SB3 baselines through the Hydra CLI: conf/agent/{sac,td3,ppo,dqn}.yaml with the zoo's
-hyperparameters per env (conf/agent_env/<agent>_<env>.yaml; the CME agent's live in cme_agent/presets.py)."""
+hyperparameters per env (conf/agent_env/<agent>_<env>.yaml; for the CME agent that file composes
+the package's preset, cme_agent/presets/<env id>.yaml)."""
 
 import inspect
 import json

@@ -108,7 +108,7 @@ class QuadcopterEnv(gym.Env[np.ndarray, np.ndarray]):
     :param sigma: width of the reward (m).
     :param max_speed: desired speed per axis at action +-1 (m/s), at most 3 (the PID's limit).
     :param agent_dt: duration of one agent step (s), a multiple of 0.02 s; 10 physics steps at the
-        default 0.2 s (CMEPolicyIteration learns reliably at 0.2 s, not at 0.1 s: docs/results.md, figure 3).
+        default 0.2 s (at 0.1 s the effect of one greedy choice is too small for CMEPolicyIteration's model).
     :param time_limit: episode length before truncation (s).
     :param process_noise: standard deviation of the Gaussian noise added to the linear and
         angular accelerations (m/s^2, rad/s^2) at each physics step; the calibrated
