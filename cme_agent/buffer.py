@@ -133,3 +133,34 @@ class TransitionStore:
             raise RuntimeError("cannot sample from an empty transition store")
         indices = torch.randint(self.size, (n,), generator=generator).to(self._data["rewards"].device)
         return self.get(indices)
+
+
+def vector_step_successors(
+    new_obs: np.ndarray, rewards: np.ndarray, dones: np.ndarray, infos: list[dict], step: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The successors and termination flags of one VecEnv step: a finished episode's successor
+    is its true last observation, and a time-limit truncation is not a termination.
+
+    :param new_obs: (n_envs, obs_dim) what ``VecEnv.step`` returned (reset observations where done)
+    :param rewards: (n_envs,) the rewards
+    :param dones: (n_envs,) bool, episode ends
+    :param infos: the step's infos (``terminal_observation``, ``TimeLimit.truncated``)
+    :param step: the agent's env step count, for the error message
+    :return: (n_envs, obs_dim) float32 successors and (n_envs,) bool terminations
+    :raises ValueError: a non-finite observation or reward, before it reaches the model
+    """
+    next_obs = np.array(new_obs, dtype=np.float32, copy=True)
+    terminated = np.zeros(len(dones), dtype=bool)
+    for i, done in enumerate(dones):
+        if done:
+            next_obs[i] = infos[i]["terminal_observation"]
+            terminated[i] = not infos[i].get("TimeLimit.truncated", False)
+    for name, values in (("observation", next_obs), ("reward", rewards)):
+        bad = ~np.isfinite(np.asarray(values, dtype=np.float64).reshape(len(dones), -1)).all(axis=1)
+        if bad.any():
+            env_index = int(np.flatnonzero(bad)[0])
+            raise ValueError(
+                f"the env returned a non-finite {name} at step {step} (env {env_index}): "
+                f"{np.asarray(values)[env_index].tolist()}; learning stopped before it reached the model"
+            )
+    return next_obs, terminated

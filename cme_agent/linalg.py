@@ -5,8 +5,8 @@ Why blocked and not ``torch.linalg.cholesky``: LAPACK's path copies the system i
 column-major order, zeroes the upper triangle of the result (``tril``) and copies the factor
 again for the solve. The left-looking blocks here spend their time in matrix products and small
 factorisations, work in place on the row-major system, and check positive definiteness once at
-the end (no host synchronisation per block on a GPU): on CartPole's 2,000 x 2,000 dual system,
-one thread, factor + solve take 90.5 ms against LAPACK's 98.9 (``benchmarks/dual_solve.py``).
+the end (no host synchronisation per block on a GPU); ``python -m benchmarks.diagnostics.dual_solve``
+compares the two.
 
 Shapes: m the size of the system, k the inner dimension of a Gram product.
 """

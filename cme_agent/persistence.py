@@ -71,7 +71,6 @@ class PersistenceMixin:
         "num_timesteps",
         "_episode_num",
         "iteration",
-        "model_step_scale",
         "reward_source",
         "env_id",
         "seed",
@@ -92,10 +91,10 @@ class PersistenceMixin:
         }
         if self._behaviour is not None:
             state["behaviour"] = self._behaviour.state_dict()
-        if self._value_weights is not None:
-            state["value_weights"] = self._value_weights  # the warm start of evaluation.solver=gd
-        if self._outside_states:
-            state["outside_states"] = self._outside_states  # a pending expansion (observation.expand_after)
+        if self.evaluator.value_weights is not None:
+            state["value_weights"] = self.evaluator.value_weights  # the warm start of evaluation.solver=gd
+        if self.box.pending:
+            state["outside_states"] = self.box.pending  # a pending expansion (observation.expand_after)
         if include_buffers:
             state["buffers"] = self._buffer_state()
         return state
@@ -115,7 +114,7 @@ class PersistenceMixin:
             "format": FORMAT,
             "class": type(self).__name__,
             "init": self._constructor_kwargs(),
-            "state": {name: getattr(self, name) for name in self._COUNTERS},
+            "state": {**{name: getattr(self, name) for name in self._COUNTERS}, "model_step_scale": self.trainer.step_scale},
             "env_kwargs": _json_safe(self.env_kwargs),
             "observation_space": space_to_dict(self.observation_space),
             "action_space": space_to_dict(self.action_space),
@@ -160,10 +159,13 @@ class PersistenceMixin:
             check_for_correct_spaces(env, observation_space, action_space)
         model = cls("CMEPolicy", env, device=device, _init_setup_model=False, **init)
         model.observation_space, model.action_space = observation_space, action_space
-        for name, value in meta["state"].items():
+        state = dict(meta["state"])
+        step_scale = state.pop("model_step_scale", 1.0)
+        for name, value in state.items():
             setattr(model, name, value)
         model.env_kwargs = meta["env_kwargs"]
         model._setup_model()
+        model.trainer.step_scale = step_scale
         model._restore(tensors, meta["numpy_rng"])
         return model
 
@@ -185,8 +187,8 @@ class PersistenceMixin:
                 self._behaviour.load_state_dict(tensors["behaviour"])
             self.policy.load_state_dict(tensors["policy"], strict=True)  # resizes the grown tensors to the saved q
             self._torch_rng.set_state(tensors["torch_rng"])
-            self._value_weights = tensors.get("value_weights")
-            self._outside_states = list(tensors.get("outside_states", []))
+            self.evaluator.value_weights = tensors.get("value_weights")
+            self.box.pending = list(tensors.get("outside_states", []))
             self._np_rng.bit_generator.state = numpy_rng
         except (RuntimeError, KeyError, TypeError, ValueError) as error:
             raise ModelFileError(f"the model file does not match its own description: {error}") from error

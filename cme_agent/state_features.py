@@ -7,13 +7,9 @@ termination part of the learned dynamics.
 The default phi (``phi.kind="auto"``) keeps p within ``phi.max_width`` (1,000) whatever the
 observation dimension: an RBF grid of up to 11 points per grid dimension where one of at least
 7 points per dimension fits (at most 3 grid dimensions at the default budget), random Fourier
-features of length scale ``max(0.3, 0.1 obs_dim)`` beyond. The choice was measured on a
-value-fitting proxy (``benchmarks/phi_basis.py``, held-out R^2 of four value-like targets at
-p = 1,000): at 4 dimensions a 5-point grid fits a wave at R^2 0.73 where Fourier features
-reach 0.81-0.92; an additive grid (sums of 1-D bumps) cannot fit interactions (R^2 < 0 on
-x_i x_{i+1} in every dimension); Fourier features at the former fixed length scale 0.3
-collapse from 8 dimensions on (R^2 <= 0.1), while a length scale growing with the dimension
-keeps R^2 0.80-1.0 on the learnable targets up to 20 dimensions.
+features of length scale ``max(0.3, 0.1 obs_dim)`` beyond: a grid cannot resolve more dims
+within the budget, and a length scale growing with the dimension keeps Fourier features able to
+fit value-like targets (``python -m benchmarks.diagnostics.phi_basis``; docs/results.md).
 """
 
 from __future__ import annotations
@@ -22,6 +18,7 @@ import math
 import os
 import warnings
 from collections.abc import Callable
+from typing import ClassVar
 
 import torch
 from torch import nn
@@ -50,6 +47,9 @@ class StateFeatureMap(nn.Module):
     regression targets of the model built from phi."""
 
     width: int
+    fast_gram: ClassVar[bool] = False
+    """Whether ``gram(obs, scale)`` gives ``Phi Phi^T`` cheaper than from Phi: policy evaluation
+    may then solve eq. (7) on the factors of its residual map."""
 
     def successor_targets(
         self, next_obs: torch.Tensor, continuation: torch.Tensor, obs: torch.Tensor | None = None
@@ -75,6 +75,8 @@ class RBFGrid(StateFeatureMap):
     :param resolution: bumps per grid dimension (one value broadcasts to all)
     :param width: bump standard deviation in grid spacings
     """
+
+    fast_gram: ClassVar[bool] = True
 
     def __init__(self, encoder: ObservationEncoder, resolution: tuple[int, ...], width: float) -> None:
         super().__init__()

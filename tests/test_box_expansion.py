@@ -17,6 +17,7 @@ from cme_agent import CMEPolicyIteration
 from cme_agent.buffer import Transitions
 from cme_agent.config import ObservationConfig
 from cme_agent.dynamics import CMEDynamics
+from cme_agent.dynamics.box import observed_states
 from cme_agent.encoding import ObservationEncoder
 
 INF = np.inf
@@ -122,7 +123,7 @@ def test_an_agent_expands_its_box_as_the_data_outgrows_it_and_saves_it(tmp_path:
     model.learn(600)
     encoder = model.dynamics.obs_encoder
     assert 1 <= int(encoder.expansions) <= 5
-    states = model._observed_states()
+    states = observed_states(model.store, model.holdout)
     assert encoder.outside_share(states) < 0.05  # the box covers D after the last expansion
     model.save(tmp_path / "model.zip")
     loaded = CMEPolicyIteration.load(tmp_path / "model.zip")
@@ -169,7 +170,7 @@ def test_an_expansion_covers_the_new_observations_that_triggered_it():
     new_states = torch.cat([drift.obs, drift.next_obs])
     assert encoder.outside_share(new_states) == 1.0
     for _ in range(model.dynamics.obs_encoder.config.expand_after):  # the drift persists
-        model._fit_observation_box(drift)
+        model.observation_box(drift)
     assert int(encoder.expansions) == 1
     assert encoder.outside_share(new_states) == 0.0
 
@@ -190,16 +191,16 @@ def test_with_expand_after_one_excursion_leaves_the_box_and_successive_ones_expa
     right = _shifted(early, torch.tensor([3.0, 0.0]) * half_range)
     left = _shifted(early, torch.tensor([-5.0, 0.0]) * half_range)
 
-    model._fit_observation_box(right)
-    model._fit_observation_box(early)  # back inside: the excursion is forgotten
-    model._fit_observation_box(right)
+    model.observation_box(right)
+    model.observation_box(early)  # back inside: the excursion is forgotten
+    model.observation_box(right)
     assert int(encoder.expansions) == 0 and torch.equal(encoder.half_range, half_range)
 
     model.save(tmp_path / "pending.zip", include=["replay_buffer"])
     loaded = CMEPolicyIteration.load(tmp_path / "pending.zip", env=Drifting())
     loaded.set_logger(configure(None, []))  # what learn() would set up
     for agent in (model, loaded):
-        agent._fit_observation_box(left)  # the second in a row: covers both excursions
+        agent.observation_box(left)  # the second in a row: covers both excursions
         box = agent.dynamics.obs_encoder
         assert int(box.expansions) == 1
         assert box.outside_share(torch.cat([right.obs, right.next_obs, left.obs, left.next_obs])) == 0.0
@@ -207,5 +208,5 @@ def test_with_expand_after_one_excursion_leaves_the_box_and_successive_ones_expa
 
     at_once = CMEPolicyIteration("CMEPolicy", Drifting(), seed=0, policy_kwargs={"observation": {"expand_after": 1}}, **SMALL)
     at_once.learn(100)
-    at_once._fit_observation_box(_shifted(early, torch.tensor([3.0, 0.0]) * at_once.dynamics.obs_encoder.half_range))
+    at_once.observation_box(_shifted(early, torch.tensor([3.0, 0.0]) * at_once.dynamics.obs_encoder.half_range))
     assert int(at_once.dynamics.obs_encoder.expansions) == 1

@@ -44,7 +44,7 @@ def trained(request):
     wide_kwargs = small_kwargs(policy_kwargs={"phi": {"resolution": [5]}}, model_update=sgd, **greedy)
     wide = CMEPolicyIteration("CMEPolicy", "CartPole-v1", seed=0, **wide_kwargs)
     wide.learn(400)
-    assert wide._factored_evaluation(300)
+    assert wide.evaluator.factored(wide.dynamics, 300)
     models["CartPole-v1 factored"] = wide
     return models
 

@@ -149,4 +149,4 @@ def test_diverging_model_update_is_undone_and_backed_off(pendulum_kwargs, monkey
     with pytest.warns(RuntimeWarning, match="model update diverged"):
         model.model_update()
     assert torch.equal(model.dynamics.weights, weights)
-    assert model.model_step_scale == 0.5
+    assert model.trainer.step_scale == 0.5

@@ -57,7 +57,7 @@ def test_ridge_lowers_the_training_loss_below_sgd(pendulum_kwargs):
 @pytest.mark.parametrize(("refit_size", "expected"), [(10_000, None), (50, 50)])
 def test_refit_sample_is_all_of_d_up_to_refit_size(pendulum_kwargs, refit_size, expected):
     agent = _agent(pendulum_kwargs, "ridge", refit_size=refit_size).learn(200)
-    sample = agent.refit_sample()
+    sample = agent.trainer.refit_sample(agent.store, agent._torch_rng)
     if expected is None:  # all of D, in order
         assert torch.equal(sample.obs, agent.store.get(slice(0, len(agent.store))).obs)
     else:

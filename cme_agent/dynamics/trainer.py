@@ -1,0 +1,127 @@
+"""The model update of Algorithm 1: B learned each iteration, exactly (ridge) or by SGD (eq. (6))."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import torch
+from stable_baselines3.common.logger import Logger
+
+from cme_agent.buffer import Transitions, TransitionStore
+from cme_agent.config import ModelUpdateConfig
+from cme_agent.dynamics.cme import CMEDynamics
+
+DIVERGENCE_FACTOR = 10.0
+"""An SGD update that multiplies the loss on a check batch by more than this is undone."""
+
+
+class ModelTrainer:
+    """Owns how B is learned (``model_update``): the exact ridge refit on a fixed-size sample of
+    D or the paper's SGD steps, the guard against a diverging SGD step, the held-out loss, and
+    the state part of a learned reward.
+
+    Every call touches a fixed-size sample of D (or only its new rows), so its cost is flat in |D|.
+
+    :param config: the ``model_update`` settings
+    """
+
+    def __init__(self, config: ModelUpdateConfig) -> None:
+        self.config = config
+        self.step_scale = 1.0
+        """Multiplier of ``learning_rate``, halved each time an SGD update diverged (saved with the agent)."""
+
+    def refit_sample(self, store: TransitionStore, generator: torch.Generator) -> Transitions:
+        """The transitions B is refit on: all of D while it holds at most ``refit_size`` of them,
+        else that many drawn uniformly with replacement (the cost stays O(refit_size)).
+
+        :param store: D
+        :param generator: the agent's torch RNG
+        """
+        if len(store) > self.config.refit_size:
+            return store.sample(self.config.refit_size, generator)
+        return store.get(slice(0, len(store)))
+
+    def update(
+        self,
+        dynamics: CMEDynamics,
+        store: TransitionStore,
+        holdout: TransitionStore,
+        generator: torch.Generator,
+        logger: Logger,
+        iteration: int,
+    ) -> None:
+        """Learn B on D: with ``method="ridge"`` the exact minimiser of loss (4) plus eq. (6)'s
+        ridge on :meth:`refit_sample`; with ``"sgd"`` ``n_steps`` minibatch steps of eq. (6).
+        A diverging SGD update (non-finite B, or the loss on a check batch up tenfold) is undone
+        and the step halved for the rest of the run, with a warning.
+
+        Logs ``train/model_loss_train``, ``train/model_loss`` (held out) and, with SGD,
+        ``train/model_step_scale``.
+
+        :param dynamics: the model, updated in place
+        :param store: D
+        :param holdout: the held-out transitions
+        :param generator: the agent's torch RNG
+        :param logger: SB3's logger
+        :param iteration: the iteration number, for the warning
+        """
+        if dynamics.q == 0:
+            return
+        self.fit(dynamics, store, generator, logger, iteration)
+        if len(holdout) > 0:
+            psi, targets = dynamics.regression_data(holdout.sample(self.config.holdout_size, generator))
+            logger.record("train/model_loss", float(dynamics.loss(psi, targets)))
+
+    def fit(
+        self, dynamics: CMEDynamics, store: TransitionStore, generator: torch.Generator, logger: Logger, iteration: int
+    ) -> None:
+        """B's update on D (ridge or SGD, as configured); logs ``train/model_loss_train``.
+
+        :param dynamics: the model, q > 0
+        :param store: D
+        :param generator: the agent's torch RNG
+        :param logger: SB3's logger
+        :param iteration: the iteration number, for the divergence warning
+        """
+        config = self.config
+        if config.method == "ridge":
+            logger.record("train/model_loss_train", dynamics.refit_weights(self.refit_sample(store, generator), config.l2))
+            return
+        logger.record("train/model_loss_train", self._sgd_update(dynamics, store, generator, iteration))
+        logger.record("train/model_step_scale", self.step_scale)
+
+    def _sgd_update(self, dynamics: CMEDynamics, store: TransitionStore, generator: torch.Generator, iteration: int) -> float:
+        """``n_steps`` SGD steps of eq. (6) on consecutive minibatches of D, undone if they diverge.
+
+        :return: the loss on the check batch after the update (mean squared residual per transition)
+        """
+        config = self.config
+        check_psi, check_targets = dynamics.regression_data(store.sample(config.batch_size * 4, generator))
+        loss_before = float(dynamics.loss(check_psi, check_targets))
+        backup = dynamics.weights.clone()
+        indices = [torch.randint(len(store), (config.batch_size,), generator=generator) for _ in range(config.n_steps)]
+        batches = store.get(torch.cat(indices).to(dynamics.weights.device))
+        dynamics.sgd_update(batches, config.batch_size, config.learning_rate * self.step_scale, config.l2)
+        loss_after = float(dynamics.loss(check_psi, check_targets))
+        if not (math.isfinite(loss_after) and loss_after <= DIVERGENCE_FACTOR * loss_before + 1e-8):
+            dynamics.weights.copy_(backup)
+            self.step_scale /= 2
+            warnings.warn(
+                f"model update diverged at iteration {iteration} (check loss {loss_before:.3g} -> {loss_after:.3g}); "
+                f"update undone, step size halved to {config.learning_rate * self.step_scale:.3g}",
+                RuntimeWarning,
+                stacklevel=3,
+            )
+        return loss_after
+
+    def fit_state_reward(self, dynamics: CMEDynamics, store: TransitionStore) -> None:
+        """With a learned reward and ``state_reward``, its state part ``<c, phi(s)>`` by ridge
+        regression on all of D, the normal equations updated with the rows not yet in them (all
+        of D after the box changed); B's reward row then fits the rest.
+
+        :param dynamics: the model, with ``fits_state_reward``
+        :param store: D
+        """
+        start = 0 if dynamics.state_reward_restarts() else int(dynamics.state_reward_rows)
+        dynamics.update_state_reward(store.get(slice(start, len(store))), self.config.state_reward_l2)
