@@ -188,8 +188,6 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             self.observation_space,
             self.action_space,
             feature_dynamics=self.model_update_config.feature_dynamics,
-            state_reward=self.model_update_config.state_reward,
-            off_data_reward=self.model_update_config.off_data_reward,
             action_scale=self.feature_selection_config.action_scale,
             reward=reward,
             evaluation=self.evaluation_config,
@@ -224,7 +222,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         saved_source = getattr(self, "reward_source", None)
         if saved_source == "user" and self.reward_fn is None:
             raise ValueError("this model was trained with a user-supplied reward: pass reward_fn= to load()")
-        if saved_source == "learned" or (self.reward_fn is None and not self.model_update_config.known_reward):
+        if saved_source == "learned":
             return None, "learned"
         env = local_env(self.env, self.env_id, self.env_kwargs, remake=saved_source == "env")
         return resolve_reward(self.reward_fn, self.env_id, env)
@@ -297,7 +295,6 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         """
         self.iteration += 1
         self.observation_box(new_data)
-        self.state_reward_regression()
         self.feature_selection(new_data)
         self.model_update()
         for _ in range(self.evaluation_config.rounds):
@@ -348,13 +345,6 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             self.policy.restart()
             self.evaluator.restart()
 
-    def state_reward_regression(self) -> None:
-        """With a learned reward and ``model_update.state_reward``, its state part ``<c, phi(s)>``
-        by ridge regression on D (:meth:`ModelTrainer.fit_state_reward`); B's row learns the rest."""
-        if self.dynamics.fits_state_reward:
-            with self._timed("state_reward"):
-                self.trainer.fit_state_reward(self.dynamics, self.store)
-
     def feature_selection(self, new_data: Transitions) -> int:
         """Feature selection, eq. (5) (:meth:`FeatureSelector.select`): matching pursuit over
         kernels centred at the m new state-actions; the picked atoms join psi and B.
@@ -397,7 +387,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             spread of Q for beta_k (None: a fresh collection is drawn when needed)
         """
         with self._timed("policy_improvement"):
-            if states is None and self.policy.soft and self.improvement_config.scale == "spread":
+            if states is None and self.policy.soft:
                 states = self.draw_collection()
             self.policy.improve(value_weights, self.gamma, self.omega, states)
 
@@ -443,9 +433,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         if self.preset_message is not None and self.verbose >= 1:
             self.logger.info(self.preset_message)
         name = env_name(self.env, self.env_id)
-        if self.reward_source == "learned" and not self.model_update_config.known_reward:
-            self.logger.info(f"The reward of env {name} is learned by regression on psi (model_update.known_reward=False).")
-        elif self.reward_source == "learned":
+        if self.reward_source == "learned":
             self.logger.info(
                 f"No reward function is known for env {name}: the reward is learned by regression on psi "
                 "(pass reward_fn= for a known one)."

@@ -151,8 +151,6 @@ class FeatureSelectionConfig:
         check("feature_selection.control_affine", self.control_affine, isinstance(self.control_affine, bool), "a bool")
 
 
-OFF_DATA_REWARDS = ("least", "zero")
-"""What a learned reward row predicts off the data (``model_update.off_data_reward``)."""
 MODEL_UPDATE_L2 = {"sgd": 1e-6, "ridge": 1e-4}
 """How B is learned each iteration (``model_update.method``), and the default ridge of each."""
 MODEL_UPDATE_METHODS = tuple(MODEL_UPDATE_L2)
@@ -181,21 +179,6 @@ class ModelUpdateConfig:
         which ``train/model_loss`` is measured
     :param holdout_size: held-out transitions sampled per iteration to measure the loss
     :param feature_dynamics: regress phi(s') - phi(s) (section 2.3) instead of phi(s')
-    :param state_reward: when the reward is learned, fit its state part ``<c, phi(s)>`` by ridge
-        regression on all of D and learn only the rest on psi (where psi's kernels fade, off the
-        data, the reward then follows phi's global fit instead of falling to 0)
-    :param state_reward_l2: ridge of that fit, relative to the mean diagonal of its normal equations
-    :param off_data_reward: what a learned reward predicts off the data, where psi's kernels
-        fade (without ``state_reward``): ``"least"``, the least of 0 and the non-terminal rewards
-        of the first feature-selection batch (the worst cost seen where rewards are costs; 0,
-        as with ``"zero"``, where they are alive bonuses), or ``"zero"`` (the row regresses the
-        reward itself)
-    :param known_reward: plan with the reward the agent knows (the env id's exact spec of
-        :mod:`cme_agent.rewards`, or the env's ``reward_function``) where there is one; False learns
-        it by regression on psi as if unknown, so that off the data it falls to ``off_data_reward``.
-        With feature dynamics the model predicts an unseen state's successor to be itself, so a
-        known alive bonus (CartPole's +1) values every unseen state at 1 / (1 - gamma), the most
-        any state can have. A ``reward_fn`` given to the constructor is always used.
     """
 
     method: str = "ridge"
@@ -207,10 +190,6 @@ class ModelUpdateConfig:
     holdout_fraction: float = 0.1
     holdout_size: int = 1000
     feature_dynamics: bool = True
-    state_reward: bool = False
-    state_reward_l2: float = 1e-3
-    off_data_reward: str = "least"
-    known_reward: bool = True
 
     def __post_init__(self) -> None:
         check_choice("model_update.method", self.method, MODEL_UPDATE_METHODS)
@@ -228,9 +207,6 @@ class ModelUpdateConfig:
         check_non_negative("model_update.l2", self.l2)
         check_unit_interval("model_update.holdout_fraction", self.holdout_fraction, open_high=True)
         check_positive_int("model_update.holdout_size", self.holdout_size)
-        check_positive("model_update.state_reward_l2", self.state_reward_l2)
-        check_choice("model_update.off_data_reward", self.off_data_reward, OFF_DATA_REWARDS)
-        check("model_update.known_reward", self.known_reward, isinstance(self.known_reward, bool), "a bool")
 
 
 MIN_COLLECTION_SIZE = 2000
@@ -245,42 +221,28 @@ MAX_COLLECTION_SIZE = 20_000
 class EvaluationConfig:
     """Policy evaluation on a collection C of states (paper eq. (7)).
 
-    :param method: ``"bellman_residual"`` (eq. (7)) or ``"lstd"`` (the fixed point)
-    :param solver: ``"lstsq"`` (regularised least squares, exact; in its dual form when
-        |C| < p) or ``"gd"`` (gradient descent on eq. (7) warm-started from the previous
-        weights; Bellman residual only)
+    The Bellman residual of eq. (7) is minimised exactly (regularised least squares, in its dual
+    form when |C| < p).
+
     :param collection_size: number of states in C (None: follows the width p of phi, see
         :func:`collection_size_for`)
     :param uniform_fraction: fraction of C drawn uniformly over the state box; the rest is
         drawn from the states in D
     :param l2: ridge coefficient, relative to the mean diagonal of the normal equations
     :param rounds: evaluation/improvement rounds per iteration on the same model
-    :param gd_steps: gradient steps per round when ``solver="gd"``
     """
 
-    method: str = "bellman_residual"
-    solver: str = "lstsq"
     collection_size: int | None = None
     uniform_fraction: float = 0.5
     l2: float = 1e-4
     rounds: int = 5
-    gd_steps: int = 100
 
     def __post_init__(self) -> None:
-        check_choice("evaluation.method", self.method, ("bellman_residual", "lstd"))
-        check_choice("evaluation.solver", self.solver, ("lstsq", "gd"))
-        check(
-            "evaluation.solver",
-            self.solver,
-            not (self.solver == "gd" and self.method == "lstd"),
-            'lstsq with method="lstd" (gradient descent minimises the Bellman residual of eq. (7) only)',
-        )
         if self.collection_size is not None:
             check_positive_int("evaluation.collection_size", self.collection_size)
         check_unit_interval("evaluation.uniform_fraction", self.uniform_fraction)
         check_positive("evaluation.l2", self.l2)
         check_positive_int("evaluation.rounds", self.rounds)
-        check_positive_int("evaluation.gd_steps", self.gd_steps)
 
 
 def collection_size_for(width: int, config: EvaluationConfig) -> int:
@@ -316,12 +278,9 @@ class ImprovementConfig:
     is the argmax of the summed Q.
 
     :param method: ``"smoothed_greedy"`` (the paper's, the default) or ``"soft"``
-    :param beta: soft only: beta_k = beta * n_k / sigma_k with ``scale="spread"`` (sigma_k the
-        spread of Qbar_k over the candidates, see :func:`cme_agent.planning.action_spread`: a
-        candidate one spread better than the average gets e^{beta} times its weight per
-        improvement), or beta_k = beta * n_k with ``scale="fixed"`` (beta in 1 / reward units:
-        exactly pi_{k+1} proportional to exp(beta sum_j decay^{k-j} Q^_j))
-    :param scale: soft only: ``"spread"`` (scale-free, the default) or ``"fixed"``
+    :param beta: soft only: beta_k = beta * n_k / sigma_k, sigma_k the spread of Qbar_k over the
+        candidates (:func:`cme_agent.planning.action_spread`): a candidate one spread better than
+        the average gets e^{beta} times its weight per improvement, whatever the reward's unit
     :param decay: soft only, in (0, 1]: weight of the past sum per improvement (1: the plain
         sum, every estimate kept; below 1 the policy forgets estimates of older models over
         about 1 / (1 - decay) improvements and its beta_k stops growing at beta / (1 - decay))
@@ -331,13 +290,11 @@ class ImprovementConfig:
     # beta 0.5, decay 0.9 (on Pendulum-v1's preset): beta 1.0 collapsed on a seed; the plain sum
     # (decay 1) learns too slowly, as the estimates of early, poor models keep their weight
     beta: float = 0.5
-    scale: str = "spread"
     decay: float = 0.9
 
     def __post_init__(self) -> None:
         check_choice("improvement.method", self.method, IMPROVEMENT_METHODS)
         check_positive("improvement.beta", self.beta)
-        check_choice("improvement.scale", self.scale, ("spread", "fixed"))
         check_unit_interval("improvement.decay", self.decay, open_low=True)
 
 

@@ -12,20 +12,18 @@ from cme_agent.config import EvaluationConfig, collection_size_for
 from cme_agent.dynamics.cme import CMEDynamics
 from cme_agent.planning import (
     FactoredResidual,
-    bellman_residual_descent,
     bellman_residual_rms,
     bellman_residual_weights,
     factored_dual_weights,
     factored_is_cheaper,
-    lstd_weights,
 )
 from cme_agent.policy import CMEPolicy, GreedyStep, SoftStep
 
 
 class PolicyEvaluator:
-    """Owns policy evaluation (``evaluation``): the collection C, the choice of solver (Bellman
-    residual or LSTD, exact or by warm-started gradient descent, on the factors of the residual
-    map where phi's Gram matrix is cheap), and the last value weights, the warm start.
+    """Owns policy evaluation (``evaluation``): the collection C and the solve of eq. (7), in its
+    primal form or, where phi's Gram matrix is cheap and that costs less, in its dual form on
+    the factors of the residual map.
 
     :param config: the ``evaluation`` settings
     :param gamma: the discount factor, in (0, 1)
@@ -35,7 +33,7 @@ class PolicyEvaluator:
         self.config = config
         self.gamma = gamma
         self.value_weights: torch.Tensor | None = None
-        """(p,) the last w, the warm start of ``solver="gd"`` (saved with the agent)."""
+        """(p,) the last w (what the diagnostics of benchmarks/ read; None after phi changed)."""
 
     def restart(self) -> None:
         """Forget the last value weights (phi changed: they belong to the old features)."""
@@ -62,10 +60,10 @@ class PolicyEvaluator:
         return torch.cat([uniform, from_data])
 
     def evaluate(self, policy: CMEPolicy, states: torch.Tensor, logger: Logger) -> torch.Tensor:
-        """Eq. (7): w minimising ``||Phi_C w - (r + gamma Phi'_C w)||^2`` plus a ridge (or the LSTD
-        fixed point), with ``Phi'_C`` the model's expected next phi at the policy's actions. A soft
-        policy is evaluated in expectation over the candidates: ``Phi'_C = sum_a pi(a|s)
-        E_model[phi~(S') | s, a]`` and the rewards likewise (both linear in psi, read at E_pi[psi(s, A)]).
+        """Eq. (7): w minimising ``||Phi_C w - (r + gamma Phi'_C w)||^2`` plus a ridge, with
+        ``Phi'_C`` the model's expected next phi at the policy's actions. A soft policy is
+        evaluated in expectation over the candidates: ``Phi'_C = sum_a pi(a|s) E_model[phi~(S') | s, a]``
+        and the rewards likewise (both linear in psi, read at E_pi[psi(s, A)]).
 
         Logs ``train/bellman_residual``, ``train/q_mean``, ``train/value_mean`` and, for a soft
         policy, ``train/policy_entropy`` and ``train/inverse_temperature``.
@@ -87,7 +85,7 @@ class PolicyEvaluator:
         else:  # psi was read through B block by block: (|C|, q) is never stored
             next_phi, model_rewards = dynamics.read(step.phi, step.psi)
             rewards = _step_rewards(dynamics, states, step) + model_rewards
-            weights = self._solve(step.phi, next_phi, rewards)
+            weights = bellman_residual_weights(step.phi, next_phi, rewards, self.gamma, config.l2)
             rms = bellman_residual_rms(step.phi, next_phi, rewards, self.gamma, weights)
         self.value_weights = weights
         logger.record("train/bellman_residual", rms)
@@ -97,29 +95,13 @@ class PolicyEvaluator:
 
     def factored(self, dynamics: CMEDynamics, size: int) -> bool:
         """Whether eq. (7) is solved on the factors of its residual map (:class:`FactoredResidual`):
-        the exact Bellman residual in its dual form, with a phi whose Gram matrix is cheap, where
-        that costs less than the primal solve.
+        in its dual form, with a phi whose Gram matrix is cheap, where that costs less than the
+        primal solve.
 
         :param dynamics: the model (phi, p and q)
         :param size: |C|
         """
-        config = self.config
-        return (
-            config.method == "bellman_residual"
-            and config.solver == "lstsq"
-            and dynamics.phi.fast_gram
-            and factored_is_cheaper(size, dynamics.p, dynamics.q)
-        )
-
-    def _solve(self, phi: torch.Tensor, next_phi: torch.Tensor, rewards: torch.Tensor) -> torch.Tensor:
-        """The configured solver on Phi_C (|C|, p), Phi'_C (|C|, p) and r (|C|,): (p,) w."""
-        config = self.config
-        if config.solver == "gd":
-            initial = self.value_weights if self.value_weights is not None else torch.zeros_like(phi[0])
-            return bellman_residual_descent(phi, next_phi, rewards, self.gamma, config.l2, initial, config.gd_steps)
-        if config.method == "lstd":
-            return lstd_weights(phi, next_phi, rewards, self.gamma, config.l2)
-        return bellman_residual_weights(phi, next_phi, rewards, self.gamma, config.l2)
+        return dynamics.phi.fast_gram and factored_is_cheaper(size, dynamics.p, dynamics.q)
 
 
 def _policy_step(

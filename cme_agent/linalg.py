@@ -108,19 +108,6 @@ def cholesky_solve(factor: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
     return y
 
 
-def ridge_solve(lhs: torch.Tensor, rhs: torch.Tensor, ridge: float) -> torch.Tensor:
-    """Solve (lhs + ridge I) x = rhs in float64 (LU), the ridge added in place on the float64 copy.
-
-    :param lhs: (m, m) system, any float dtype
-    :param rhs: (m,) right-hand side
-    :param ridge: lambda, in the units of lhs
-    :return: (m,) float64 solution
-    """
-    system = lhs.double()
-    system.diagonal().add_(ridge)
-    return torch.linalg.solve(system, rhs.double())
-
-
 def lower_solve_(system: torch.Tensor, rhs: torch.Tensor, ridge: float, rebuild: Callable[[], torch.Tensor]) -> torch.Tensor:
     """Solve ``(S + ridge I) x = rhs`` for a symmetric S given by its float64 lower triangle, by
     Cholesky in place (:func:`cholesky_`). Where rounding made the system not positive definite

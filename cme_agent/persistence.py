@@ -91,8 +91,6 @@ class PersistenceMixin:
         }
         if self._behaviour is not None:
             state["behaviour"] = self._behaviour.state_dict()
-        if self.evaluator.value_weights is not None:
-            state["value_weights"] = self.evaluator.value_weights  # the warm start of evaluation.solver=gd
         if self.box.pending:
             state["outside_states"] = self.box.pending  # a pending expansion (observation.expand_after)
         if include_buffers:
@@ -187,7 +185,6 @@ class PersistenceMixin:
                 self._behaviour.load_state_dict(tensors["behaviour"])
             self.policy.load_state_dict(tensors["policy"], strict=True)  # resizes the grown tensors to the saved q
             self._torch_rng.set_state(tensors["torch_rng"])
-            self.evaluator.value_weights = tensors.get("value_weights")
             self.box.pending = list(tensors.get("outside_states", []))
             self._np_rng.bit_generator.state = numpy_rng
         except (RuntimeError, KeyError, TypeError, ValueError) as error:

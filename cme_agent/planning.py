@@ -6,8 +6,8 @@ Shapes: n = |C| states in the collection, p = width of phi, q = width of psi.
 The evaluation's large products (A^T A, A A^T, A^T r, with A an n x p matrix) run in the
 input dtype (float32 by default); only the small p x p (or n x n) system is solved in
 float64 (:mod:`cme_agent.linalg`: a blocked Cholesky in place for the symmetric
-Bellman-residual systems, whose products are built as their lower triangle; LU for LSTD's).
-Ridges are added in place. When n < p the exact solvers switch to the dual form,
+Bellman-residual systems, whose products are built as their lower triangle).
+Ridges are added in place. When n < p the solver switches to the dual form,
 an n x n system, which gives the same weights to rounding (the push-through identity
 ``(X^T A + lambda I)^{-1} X^T = X^T (A X^T + lambda I)^{-1}``). With a cheap Gram matrix of phi
 the dual system is built from the factors of A instead (:class:`FactoredResidual`).
@@ -20,12 +20,11 @@ from dataclasses import dataclass
 
 import torch
 
-from cme_agent.linalg import gram_solve, lower_gram, lower_solve_, ridge_solve, transposed_product
+from cme_agent.linalg import gram_solve, lower_gram, lower_solve_, transposed_product
 
-SYSTEM_BYTES_PER_ENTRY = 20
-"""Bytes per entry of the evaluation's m x m system, m = min(|C|, p), at most: LSTD's product in
-float32 (4), its float64 copy (8) and the LU factorisation's copy (8). (The Bellman residual's
-Cholesky holds only the float64 system, 8.)"""
+SYSTEM_BYTES_PER_ENTRY = 8
+"""Bytes per entry of the evaluation's m x m system, m = min(|C|, p): the float64 system, built as
+its lower triangle and factorised in place."""
 
 MATRIX_BYTES_PER_ENTRY = 12
 """Bytes per entry of the evaluation's |C| x p float32 matrices: Phi_C, Phi'_C and A."""
@@ -33,7 +32,7 @@ MATRIX_BYTES_PER_ENTRY = 12
 
 def evaluation_memory_bytes(width: int, collection_size: int) -> int:
     """Peak bytes the exact evaluation holds for a phi of width p on a collection of n states:
-    ``12 n p`` (three n x p float32 matrices) + ``20 min(n, p)^2`` (the system, see
+    ``12 n p`` (three n x p float32 matrices) + ``8 min(n, p)^2`` (the system, see
     :data:`SYSTEM_BYTES_PER_ENTRY`).
 
     :param width: p, the width of phi
@@ -151,64 +150,6 @@ def factored_is_cheaper(n: int, p: int, q: int) -> bool:
     return n < p and 2 * q * (n * n + n * q + p * q) < n * n * p
 
 
-def lstd_weights(phi: torch.Tensor, next_phi: torch.Tensor, rewards: torch.Tensor, gamma: float, l2: float) -> torch.Tensor:
-    """The fixed point of the projected Bellman equation (LSTD), the alternative to eq. (7):
-    ``(Phi_C^T M + lambda I) w = Phi_C^T r`` with ``M = Phi_C - gamma Phi'_C`` and
-    lambda = l2 * mean |diag(Phi_C^T M)|.
-
-    When n < p the dual form ``w = Phi_C^T (M Phi_C^T + lambda I)^{-1} r`` gives the same w
-    (an n x n, non-symmetric system; it is singular exactly when the primal is). Unlike the
-    Bellman residual, the products run in float64: LSTD's non-symmetric system amplifies the
-    rounding of float32 products to O(1) errors in V (measured: tests/test_dual_solve.py).
-    Arguments and result as :func:`bellman_residual_weights`.
-    """
-    phi64 = phi.double()
-    residual_map = phi64 - gamma * next_phi.double()
-    n, p = phi.shape
-    ridge = _ridge((phi64 * residual_map).sum(0).abs().sum(), p, l2)
-    if n >= p:
-        weights = ridge_solve(phi64.T @ residual_map, phi64.T @ rewards.double(), ridge)
-    else:
-        weights = phi64.T @ ridge_solve(residual_map @ phi64.T, rewards, ridge)
-    return weights.to(phi.dtype)
-
-
-def bellman_residual_descent(
-    phi: torch.Tensor,
-    next_phi: torch.Tensor,
-    rewards: torch.Tensor,
-    gamma: float,
-    l2: float,
-    initial: torch.Tensor,
-    steps: int,
-) -> torch.Tensor:
-    """Eq. (7) by gradient descent warm-started from the previous weights:
-    O(|C| p^2 + steps p^2), as in the paper's complexity statement.
-
-    Minimises ``(1/2n) ||A w - r||^2 + (lambda / 2n) ||w||^2`` with ``A = Phi_C - gamma Phi'_C``
-    and lambda as in :func:`bellman_residual_weights` (so its minimiser is that function's w),
-    by Nesterov's accelerated gradient with step 1/L. The p x p product is formed in the input
-    dtype, the iterations run in float64.
-
-    :param initial: (p,) starting weights (the previous w, zero-padded if needed)
-    :param steps: number of gradient steps
-    :return: (p,) value weights
-    """
-    residual_map = torch.add(phi, next_phi, alpha=-gamma)  # one pass, no (n, p) temporary
-    n, p = residual_map.shape
-    gram = (residual_map.T @ residual_map).double().div_(n)
-    gram.diagonal().add_(_ridge(torch.linalg.vector_norm(residual_map).square(), p, l2) / n)
-    target = (residual_map.T @ rewards.to(residual_map.dtype)).double().div_(n)
-    lipschitz = float(torch.linalg.eigvalsh(gram)[-1])
-    w = initial.double().clone()
-    previous = w.clone()
-    for step in range(steps):
-        lookahead = w + (step / (step + 3)) * (w - previous)
-        previous = w
-        w = lookahead - (gram @ lookahead - target) / lipschitz
-    return w.to(phi.dtype)
-
-
 def bellman_residual_rms(
     phi: torch.Tensor, next_phi: torch.Tensor, rewards: torch.Tensor, gamma: float, w: torch.Tensor
 ) -> float:
@@ -256,8 +197,7 @@ def softmax_policy(values: torch.Tensor, inverse_temperature: torch.Tensor | flo
 def action_spread(values: torch.Tensor) -> torch.Tensor:
     """The spread of Q over the candidate actions, ``sigma = sqrt(mean_s var_a Q(s, a))`` (the
     standard deviation over the candidates, root-mean-square over the states), floored at
-    :data:`SPREAD_FLOOR` times the root-mean-square of Q: the scale of beta with
-    ``improvement.scale="spread"``.
+    :data:`SPREAD_FLOOR` times the root-mean-square of Q: the scale of the soft improvement's beta.
 
     :param values: (N, K) Q at states and candidate actions
     :return: 0-dim tensor sigma > 0

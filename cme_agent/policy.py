@@ -103,8 +103,6 @@ class CMEPolicy(BasePolicy):
     :param candidate_seed: seed of the sampled action candidates (Box actions, high dims)
     :param feature_dynamics: the model regresses phi~(s') - phi(s) (section 2.3)
     :param reward: the known reward; None: the model learns it
-    :param state_reward: a learned reward's state part is fit on phi (``model_update.state_reward``)
-    :param off_data_reward: what a learned reward predicts off the data (``model_update.off_data_reward``)
     :param action_scale: the weight of a Box action in psi's input (``feature_selection.action_scale``; Discrete: unscaled)
     :param evaluation: the evaluation settings, for the memory check of phi (None: defaults)
     :param improvement: the improvement step (:class:`ImprovementConfig` or dict; None: the
@@ -124,8 +122,6 @@ class CMEPolicy(BasePolicy):
         reward: RewardSpec | None = None,
         evaluation: EvaluationConfig | None = None,
         improvement: ImprovementConfig | dict[str, Any] | None = None,
-        state_reward: bool = False,
-        off_data_reward: str = "least",
         action_scale: float = 1.0,
     ) -> None:
         super().__init__(observation_space, action_space, squash_output=False)
@@ -147,8 +143,6 @@ class CMEPolicy(BasePolicy):
             feature_dynamics,
             reward,
             evaluation,
-            state_reward,
-            off_data_reward,
             action_scale,
         )
         self.register_buffer("theta_phi", torch.zeros(self.dynamics.p))
@@ -190,8 +184,6 @@ class CMEPolicy(BasePolicy):
             candidate_seed=self.candidate_seed,
             feature_dynamics=self.dynamics.feature_dynamics,
             improvement=self.improvement,
-            state_reward=self.dynamics.fits_state_reward,
-            off_data_reward=self.dynamics.off_data_reward,
             action_scale=float(self.dynamics.action_scale),
         )
         return data
@@ -447,8 +439,7 @@ class CMEPolicy(BasePolicy):
         :param gamma: discount factor
         :param omega: smoothing step in (0, 1] (smoothed greedy only)
         :param states: (N, obs_dim) states where the spread of Qbar_k over the candidates is
-            measured (soft with ``scale="spread"``: the collection C; an even stride of
-            :data:`SPREAD_STATES` of them is used)
+            measured (soft only: the collection C; an even stride of :data:`SPREAD_STATES` of them is used)
         """
         theta_phi, theta_psi = self.dynamics.backup_weights(value_weights, gamma)
         if not self.soft:
@@ -462,17 +453,14 @@ class CMEPolicy(BasePolicy):
         self.inverse_temperature = self._inverse_temperature(states)
 
     def _inverse_temperature(self, states: torch.Tensor | None) -> torch.Tensor:
-        """beta_k = beta n_k / sigma(Qbar_k) (``scale="spread"``, sigma from :func:`action_spread` on
-        the states) or beta n_k (``"fixed"``): pi_{k+1} proportional to exp(beta_k / n_k sum_j decay^{k-j} Q^_j).
+        """beta_k = beta n_k / sigma(Qbar_k), sigma from :func:`action_spread` on the states:
+        pi_{k+1} proportional to exp(beta_k / n_k sum_j decay^{k-j} Q^_j), free of the reward's unit.
 
-        :param states: (N, obs_dim) states for the spread (needed with ``scale="spread"``)
+        :param states: (N, obs_dim) states for the spread
         :return: 0-dim tensor beta_k
         """
-        config = self.improvement
-        beta_sum = torch.as_tensor(config.beta, dtype=self.theta_phi.dtype, device=self.device) * self.improvements
-        if config.scale == "fixed":
-            return beta_sum
+        beta_sum = torch.as_tensor(self.improvement.beta, dtype=self.theta_phi.dtype, device=self.device) * self.improvements
         if states is None:
-            raise ValueError('improvement.scale="spread" measures Q on states: pass states= to improve()')
+            raise ValueError("the soft improvement measures Q's spread on states: pass states= to improve()")
         stride = max(1, states.shape[0] // SPREAD_STATES)
         return beta_sum / action_spread(self.candidate_q_values(states[::stride][:SPREAD_STATES]))

@@ -24,8 +24,6 @@ from cme_agent.presets import GROUPS, TOP_LEVEL_KEYS, apply_preset
 
 SET_BY_THE_AGENT = {
     "feature_dynamics": "model_update={'feature_dynamics': ...}",
-    "state_reward": "model_update={'state_reward': ...}",
-    "off_data_reward": "model_update={'off_data_reward': ...}",
     "action_scale": "feature_selection={'action_scale': ...}",
     "reward": "reward_fn=...",
     "evaluation": "evaluation=...",

@@ -3,8 +3,8 @@
 import pytest
 import torch
 
-from cme_agent.config import EvaluationConfig, build_config, collection_size_for
-from cme_agent.planning import bellman_residual_descent, bellman_residual_weights, lstd_weights
+from cme_agent.config import EvaluationConfig, collection_size_for
+from cme_agent.planning import bellman_residual_weights
 
 
 def _rbf(x: torch.Tensor, points: int) -> torch.Tensor:
@@ -26,64 +26,52 @@ def _problem(n: int, dims: int, points: int, seed: int = 0):
     return _rbf(x, points), _rbf(successors.clamp(-1.2, 1.2), points), torch.exp(-(x**2).sum(1) / 0.3)
 
 
-def _primal_reference(phi, next_phi, rewards, gamma, l2, lstd=False):
+def _primal_reference(phi, next_phi, rewards, gamma, l2):
     """The textbook primal solve, all in float64 with an explicit ridge matrix."""
     phi, next_phi, rewards = phi.double(), next_phi.double(), rewards.double()
     residual_map = phi - gamma * next_phi
-    left = phi if lstd else residual_map
-    lhs = left.T @ residual_map
+    lhs = residual_map.T @ residual_map
     ridge = l2 * lhs.diagonal().abs().mean()
-    return torch.linalg.solve(lhs + ridge * torch.eye(lhs.shape[0], dtype=torch.float64), left.T @ rewards)
+    return torch.linalg.solve(lhs + ridge * torch.eye(lhs.shape[0], dtype=torch.float64), residual_map.T @ rewards)
 
 
-@pytest.mark.parametrize("solver, lstd", [(bellman_residual_weights, False), (lstd_weights, True)])
 @pytest.mark.parametrize("n, points", [(300, 15), (200, 5)])  # p = 226 < n = 300: primal; p = 26 < 200 primal too
-def test_dual_equals_primal_where_both_fit(solver, lstd, n, points):
+def test_dual_equals_primal_where_both_fit(n, points):
     """The dual w = X^T (M X^T + lambda I)^{-1} r (n < p) and the primal (n >= p) equal the reference (float64)."""
     phi, next_phi, rewards = _problem(n, 2, points)
-    primal = solver(phi, next_phi, rewards, 0.95, 1e-4)
+    primal = bellman_residual_weights(phi, next_phi, rewards, 0.95, 1e-4)
     # the same problem with fewer states than features takes the dual branch; compare with the primal reference
     few = slice(0, phi.shape[1] - 1)
-    dual = solver(phi[few], next_phi[few], rewards[few], 0.95, 1e-4)
-    assert torch.allclose(primal, _primal_reference(phi, next_phi, rewards, 0.95, 1e-4, lstd), rtol=1e-7, atol=1e-9)
-    reference = _primal_reference(phi[few], next_phi[few], rewards[few], 0.95, 1e-4, lstd)
+    dual = bellman_residual_weights(phi[few], next_phi[few], rewards[few], 0.95, 1e-4)
+    assert torch.allclose(primal, _primal_reference(phi, next_phi, rewards, 0.95, 1e-4), rtol=1e-7, atol=1e-9)
+    reference = _primal_reference(phi[few], next_phi[few], rewards[few], 0.95, 1e-4)
     assert torch.allclose(dual, reference, rtol=1e-6, atol=1e-8)
 
 
-@pytest.mark.parametrize("solver, lstd", [(bellman_residual_weights, False), (lstd_weights, True)])
-def test_fewer_states_than_features_uses_the_dual_and_fits_the_collection(solver, lstd):
+def test_fewer_states_than_features_uses_the_dual_and_fits_the_collection():
     phi, next_phi, rewards = _problem(150, 2, 21)  # n = 150 < p = 442
-    w = solver(phi, next_phi, rewards, 0.9, 1e-8)
+    w = bellman_residual_weights(phi, next_phi, rewards, 0.9, 1e-8)
     assert w.shape == (442,) and torch.isfinite(w).all()
-    residual = (phi - 0.9 * next_phi) @ w - rewards if not lstd else phi.T @ ((phi - 0.9 * next_phi) @ w - rewards)
-    assert float(residual.abs().max()) < 1e-3 * float(rewards.abs().max()) * (phi.shape[0] if lstd else 1)
-    reference = _primal_reference(phi, next_phi, rewards, 0.9, 1e-8, lstd)
+    residual = (phi - 0.9 * next_phi) @ w - rewards
+    assert float(residual.abs().max()) < 1e-3 * float(rewards.abs().max())
+    reference = _primal_reference(phi, next_phi, rewards, 0.9, 1e-8)
     values, reference_values = phi @ w, phi @ reference
     assert float((values - reference_values).norm()) < 1e-5 * float(reference_values.norm())
-    if not lstd:  # LSTD's non-symmetric system at a 1e-8 ridge fixes w itself only to ~1e-4 (it varies with BLAS threads)
-        assert torch.allclose(w, reference, rtol=1e-4, atol=1e-6)
+    assert torch.allclose(w, reference, rtol=1e-4, atol=1e-6)
 
 
 @pytest.mark.parametrize(
     "n, dims, points, tolerance",
     [(4000, 2, 15, 1e-3), (400, 2, 21, 1e-2)],  # primal (p = 226), dual (p = 442)
 )
-@pytest.mark.parametrize("solver, lstd", [(bellman_residual_weights, False), (lstd_weights, True)])
-def test_float32_products_match_an_all_float64_reference(n, dims, points, tolerance, solver, lstd):
+def test_float32_products_match_an_all_float64_reference(n, dims, points, tolerance):
     """Float32 inputs: the values phi w stay within the tolerance of the float64 solve on the same (rounded) inputs."""
     phi, next_phi, rewards = (t.float() for t in _problem(n, dims, points))
-    w = solver(phi, next_phi, rewards, 0.98, 1e-4)
+    w = bellman_residual_weights(phi, next_phi, rewards, 0.98, 1e-4)
     assert w.dtype == torch.float32
-    reference = phi.double() @ _primal_reference(phi, next_phi, rewards, 0.98, 1e-4, lstd)
+    reference = phi.double() @ _primal_reference(phi, next_phi, rewards, 0.98, 1e-4)
     error = float((phi.double() @ w.double() - reference).norm() / reference.norm())
     assert error < tolerance
-
-
-def test_gradient_descent_converges_to_the_exact_solution():
-    phi, next_phi, rewards = _problem(400, 2, 7)
-    exact = bellman_residual_weights(phi, next_phi, rewards, 0.9, 1e-2)
-    w = bellman_residual_descent(phi, next_phi, rewards, 0.9, 1e-2, torch.zeros(phi.shape[1], dtype=torch.float64), 3000)
-    assert torch.allclose(phi @ w, phi @ exact, atol=1e-3 * float(rewards.abs().max()))
 
 
 def test_collection_size_follows_the_width_of_phi():
@@ -96,15 +84,6 @@ def test_collection_size_follows_the_width_of_phi():
     assert collection_size_for(5000, EvaluationConfig(collection_size=300)) == 300
 
 
-def test_gradient_descent_with_lstd_is_refused():
-    with pytest.raises(ValueError, match=r"evaluation.solver='gd' is invalid.*lstd"):
-        build_config(EvaluationConfig, {"solver": "gd", "method": "lstd"}, "evaluation")
-    EvaluationConfig(solver="gd")  # the Bellman residual by gradient descent is fine
-
-
 def test_float32_rewards_with_float64_features_are_accepted():
     phi, next_phi, rewards = _problem(100, 1, 5)
-    for solver in (bellman_residual_weights, lstd_weights):
-        assert solver(phi, next_phi, rewards.float(), 0.9, 1e-4).dtype == torch.float64
-    initial = torch.zeros(phi.shape[1], dtype=torch.float64)
-    assert torch.isfinite(bellman_residual_descent(phi, next_phi, rewards.float(), 0.9, 1e-4, initial, 5)).all()
+    assert bellman_residual_weights(phi, next_phi, rewards.float(), 0.9, 1e-4).dtype == torch.float64

@@ -80,8 +80,8 @@ def test_a_phi_that_cannot_fit_in_memory_is_refused_with_the_number(monkeypatch)
 
 
 def test_memory_estimate_counts_the_matrices_and_the_smaller_system():
-    assert evaluation_memory_bytes(1000, 10_000) == 12 * 10_000 * 1000 + 20 * 1000**2
-    assert evaluation_memory_bytes(3000, 2000) == 12 * 2000 * 3000 + 20 * 2000**2  # dual: n x n
+    assert evaluation_memory_bytes(1000, 10_000) == 12 * 10_000 * 1000 + 8 * 1000**2
+    assert evaluation_memory_bytes(3000, 2000) == 12 * 2000 * 3000 + 8 * 2000**2  # dual: n x n
 
 
 def test_on_a_cuda_device_the_memory_check_reads_the_devices_memory(monkeypatch):

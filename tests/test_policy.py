@@ -160,7 +160,7 @@ def test_known_envs_get_their_observation_facts():
         ({"steps_per_iteration": 0}, "steps_per_iteration"),
         ({"feature_selection": {"bandwidths": [0.3, -1.0]}}, "feature_selection.bandwidths"),
         ({"model_update": {"learning_rate": 3.0}}, "model_update.learning_rate"),
-        ({"evaluation": {"method": "td"}}, "evaluation.method"),
+        ({"evaluation": {"rounds": 0}}, "evaluation.rounds"),
         ({"exploration": {"epsilon": 2}}, "exploration.epsilon"),
         ({"feature_selection": {"bandwith": 0.3}}, "unknown key"),
         ({"policy_kwargs": {"phi": {"resolution": [21, 15, 3]}, "observation": {"angle_pairs": [[0, 1]]}}}, "phi.resolution"),

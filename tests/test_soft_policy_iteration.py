@@ -13,7 +13,6 @@ from cme_agent.planning import (
     action_spread,
     bellman_residual_weights,
     expected_candidate_features,
-    lstd_weights,
     softmax_policy,
 )
 
@@ -105,11 +104,10 @@ def test_soft_evaluation_recovers_the_exact_value_of_a_finite_mdp(feature_dynami
     generator = torch.Generator().manual_seed(1)
     policy.theta_psi = torch.randn(policy.dynamics.q, generator=generator, dtype=torch.float64)
     policy.inverse_temperature = torch.tensor(0.7, dtype=torch.float64)  # a genuinely stochastic policy
-    for solver in (bellman_residual_weights, lstd_weights):
-        _, probabilities, value = _evaluate(policy, states, gamma, solver)
-        assert probabilities.max() < 0.99 and probabilities.min() > 1e-3
-        exact = _exact_value(transitions, rewards, probabilities, gamma)
-        assert torch.allclose(value, exact, atol=1e-8), solver.__name__
+    _, probabilities, value = _evaluate(policy, states, gamma, bellman_residual_weights)
+    assert probabilities.max() < 0.99 and probabilities.min() > 1e-3
+    exact = _exact_value(transitions, rewards, probabilities, gamma)
+    assert torch.allclose(value, exact, atol=1e-8)
 
 
 def test_expected_features_are_the_probability_weighted_sum():
@@ -193,7 +191,7 @@ def test_infinite_beta_gives_the_greedy_policy():
 def test_summed_q_weights_zero_pad_as_psi_grows(decay):
     """n_k Qbar_k = sum_j decay^{k-j} Q^_j (the plain sum k Qbar_k without decay), each Q^_j
     read on the bank of its time: psi only appends, so the old weights are zero-padded."""
-    policy, obs = _random_policy(improvement={**SOFT, "scale": "fixed", "beta": 0.5, "decay": decay}, q=10)
+    policy, obs = _random_policy(improvement={**SOFT, "beta": 0.5, "decay": decay}, q=10)
     policy.theta_psi, policy.theta_phi = torch.zeros(0), torch.zeros(policy.dynamics.p)
     generator = torch.Generator().manual_seed(3)
     summed, count, gamma = 0.0, 0.0, 0.9
@@ -204,17 +202,18 @@ def test_summed_q_weights_zero_pad_as_psi_grows(decay):
         psi = torch.stack([policy.dynamics.features(obs, a.expand(len(obs), 1)) for a in policy.candidates], 1)
         estimate = policy._candidate_step_rewards(obs) + (policy.dynamics.phi(obs) @ theta_phi)[:, None] + psi @ theta_psi
         summed, count = decay * summed + estimate, decay * count + 1
-        policy.improve(weights, gamma, omega=0.5)  # omega is not used by the soft improvement
+        policy.improve(weights, gamma, omega=0.5, states=obs)  # omega is not used by the soft improvement
         assert policy.theta_psi.shape == (policy.dynamics.q,)
         assert float(policy.improvements) == pytest.approx(count) and (decay < 1 or count == k)
-        assert float(policy.inverse_temperature) == pytest.approx(0.5 * count)
+        spread = float(action_spread(policy.candidate_q_values(obs)))
+        assert float(policy.inverse_temperature) == pytest.approx(0.5 * count / spread, rel=1e-5)
         assert torch.allclose(count * policy.candidate_q_values(obs), summed, atol=1e-3)
-        # pi_{k+1} proportional to exp(beta sum_j decay^{k-j} Q^_j)
-        assert torch.allclose(policy.probabilities(obs), torch.softmax(0.5 * summed, 1), atol=1e-5)
+        # pi_{k+1} proportional to exp(beta / sigma_k sum_j decay^{k-j} Q^_j)
+        assert torch.allclose(policy.probabilities(obs), torch.softmax(0.5 * summed / spread, 1), atol=1e-5)
 
 
 def test_spread_scale_makes_beta_free_of_the_reward_unit():
-    """scale="spread": beta_k = beta k / sigma(Qbar_k); rescaling the rewards leaves pi unchanged."""
+    """beta_k = beta k / sigma(Qbar_k): rescaling the rewards leaves pi unchanged."""
     transitions, rewards = _finite_mdp(6, 3, seed=4)
     probabilities = []
     for unit in (1.0, 1000.0):
@@ -263,11 +262,10 @@ def test_soft_iteration_value_never_drops_while_the_greedy_one_does(seed, soft_c
 @pytest.mark.parametrize("seed", range(5))
 def test_soft_iteration_is_monotone_with_an_exact_value(seed):
     """One-hot phi: exact evaluation, so pi_{k+1} proportional to pi_k exp(eta Q^{pi_k}) (the
-    plain sum, decay 1) improves every state (mirror descent); with beta fixed, for any beta."""
+    plain sum, decay 1) improves every state (mirror descent)."""
     transitions, rewards = _finite_mdp(6, 3, seed)
-    for improvement in ({**SOFT, "decay": 1.0}, {**SOFT, "scale": "fixed", "beta": 3.0, "decay": 1.0}):
-        values = _policy_values(transitions, rewards, improvement, None, rounds=20)
-        assert np.diff(values).min() >= -1e-9, improvement
+    values = _policy_values(transitions, rewards, {**SOFT, "decay": 1.0}, None, rounds=20)
+    assert np.diff(values).min() >= -1e-9
 
 
 def test_soft_improvement_config_is_checked():
@@ -275,8 +273,6 @@ def test_soft_improvement_config_is_checked():
         ImprovementConfig(method="greedy")
     with pytest.raises(ValueError, match=r"improvement.beta=0 is invalid"):
         ImprovementConfig(method="soft", beta=0)
-    with pytest.raises(ValueError, match=r"improvement.scale='max' is invalid"):
-        ImprovementConfig(scale="max")
     with pytest.raises(ValueError, match=r"improvement.decay=0 is invalid"):
         ImprovementConfig(decay=0)
     with pytest.raises(ValueError, match=r"action_search.refine_steps=3 is invalid with improvement.method='soft'"):

@@ -15,8 +15,7 @@ class ObservationBox:
     data of the random phase; later, when more than ``expand_outside`` of an iteration's new
     observations fall outside it in ``expand_after`` successive iterations, it is expanded to
     cover those iterations' new observations (at most ``max_expansions`` times). psi's centres
-    keep their place, the state reward (if fitted) is fitted again on all of D, and B is refit on
-    the trainer's sample of D. The new observations, not all of D, set the expansion: the
+    keep their place and B is refit on the trainer's sample of D. The new observations, not all of D, set the expansion: the
     quantiles of D would leave out a drift that is a small share of D, and the policy would meet
     the box's edge again at once.
     """
@@ -63,10 +62,8 @@ class ObservationBox:
         if len(self.pending) < config.expand_after:
             return False
         new_states, self.pending = torch.cat(self.pending), []
-        data = store.get(slice(0, len(store))) if dynamics.fits_state_reward else None
         sample = trainer.refit_sample(store, generator)
-        config = trainer.config
-        logger.info(dynamics.expand_observation_box(new_states, sample, config.l2, data, config.state_reward_l2))
+        logger.info(dynamics.expand_observation_box(new_states, sample, trainer.config.l2))
         logger.record("train/observation_box_expansions", int(encoder.expansions))
         return True
 

@@ -14,17 +14,14 @@ Regression target of a transition: the continuation-weighted successor feature
 ``phi(s)`` in the feature-dynamics form of section 2.3. Since phi ends with a constant 1, the
 model's last phi row predicts the continuation probability; when the reward is learned, one
 more row regresses ``(r - reward_offset) / reward_scale`` on psi: the whole reward less an
-offset (``off_data_reward="least"``: the least of 0 and the first batch's non-terminal rewards;
-where psi's kernels fade, off the data, the model predicts that offset), or with
-``state_reward`` what is left of it after its state part ``<c, phi(s)>``, fit by ridge
-regression on all of D (:meth:`CMEDynamics.update_state_reward`).
+offset, the least of 0 and the first batch's non-terminal rewards; where psi's kernels fade,
+off the data, the model predicts that offset (:meth:`CMEDynamics.calibrate_reward_row`).
 
 Shapes: N a batch, p = width of phi, q = width of psi, p_out = p (+ 1 with a learned reward).
 """
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -34,15 +31,7 @@ from gymnasium import spaces
 from torch import nn
 
 from cme_agent.buffer import Transitions
-from cme_agent.config import (
-    OFF_DATA_REWARDS,
-    EvaluationConfig,
-    ModelUpdateConfig,
-    ObservationConfig,
-    StateFeatureConfig,
-    build_config,
-    check_choice,
-)
+from cme_agent.config import EvaluationConfig, ObservationConfig, StateFeatureConfig, build_config
 from cme_agent.dynamics.sgd import sgd_step
 from cme_agent.encoding import ActionEncoder, ObservationEncoder
 from cme_agent.kernel_bank import JOINT, STATE_ONLY, KernelBank, resize_buffers
@@ -59,9 +48,6 @@ preset: p = 2,836) the targets of all 200 minibatches would take about 300 MB, t
 
 REFIT_ROWS = 4096
 """Rows of psi built at once by :meth:`CMEDynamics.refit_weights` (32 MiB of float32 at q = 2,000)."""
-
-MAX_STATE_REWARD_WIDTH = 4096
-"""Widest phi whose state reward is fit: its normal equations are a p^2 float64 matrix (128 MiB here)."""
 
 
 @dataclass
@@ -91,11 +77,6 @@ class CMEDynamics(nn.Module):
     :param feature_dynamics: regress phi~(s') - phi(s) (section 2.3) instead of phi~(s')
     :param reward: the known reward; None: learn it by regression on psi (one more row of B)
     :param evaluation: the evaluation settings, for the memory check of phi (None: defaults)
-    :param state_reward: with a learned reward, fit its state part ``<c, phi(s)>`` by ridge
-        regression on all of D (:meth:`update_state_reward`) and leave psi's row the rest
-    :param off_data_reward: what a learned reward predicts off the data, where psi fades
-        (without ``state_reward``): ``"least"``, the least of 0 and the first batch's
-        non-terminal rewards, or ``"zero"``
     :param action_scale: the weight of a Box action in psi's input (``feature_selection.action_scale``;
         a Discrete action's one-hot enters unscaled)
     """
@@ -109,12 +90,9 @@ class CMEDynamics(nn.Module):
         feature_dynamics: bool = True,
         reward: RewardSpec | None = None,
         evaluation: EvaluationConfig | None = None,
-        state_reward: bool = False,
-        off_data_reward: str = "least",
         action_scale: float = 1.0,
     ) -> None:
         super().__init__()
-        check_choice("model_update.off_data_reward", off_data_reward, OFF_DATA_REWARDS)
         self.obs_encoder = ObservationEncoder(observation_space, build_config(ObservationConfig, observation, "observation"))
         self.action_encoder = ActionEncoder(action_space)
         phi_config = phi if callable(phi) else build_config(StateFeatureConfig, phi, "phi")
@@ -129,22 +107,6 @@ class CMEDynamics(nn.Module):
         self.register_buffer(
             "action_scale", torch.tensor(1.0 if self.action_encoder.discrete else float(action_scale), dtype=torch.float64)
         )
-        self.fits_state_reward = state_reward and self.learn_reward and self.p <= MAX_STATE_REWARD_WIDTH
-        self.off_data_reward = "zero" if self.fits_state_reward else off_data_reward
-        if state_reward and self.learn_reward and not self.fits_state_reward:
-            warnings.warn(
-                f"model_update.state_reward is off: phi is {self.p:,} features wide, its normal equations would take "
-                f"{8 * self.p**2 / 2**30:.1f} GiB (at most {MAX_STATE_REWARD_WIDTH:,} features); "
-                "psi's row learns the whole reward",
-                UserWarning,
-                stacklevel=2,
-            )
-        if self.fits_state_reward:
-            self.register_buffer("state_reward", torch.zeros(self.p))
-            self.register_buffer("state_reward_gram", torch.zeros(self.p, self.p, dtype=torch.float64))
-            self.register_buffer("state_reward_moments", torch.zeros(self.p, dtype=torch.float64))
-            self.register_buffer("state_reward_rows", torch.zeros((), dtype=torch.long))
-            self.register_buffer("state_reward_box", torch.zeros(2, self.obs_encoder.center.numel()))
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -186,14 +148,12 @@ class CMEDynamics(nn.Module):
 
     def targets(self, batch: Transitions) -> torch.Tensor:
         """Regression targets y of a batch: (N, p_out), phi~(s') (- phi(s)) (and the reward row's
-        ``(r - reward_offset - <c, phi(s)>) / reward_scale``, c = 0 without ``state_reward``)."""
+        ``(r - reward_offset) / reward_scale``)."""
         continuation = (~batch.terminated).to(batch.next_obs)
         target = self.phi.successor_targets(batch.next_obs, continuation, batch.obs if self.feature_dynamics else None)
         if self.learn_reward:
-            rewards = batch.rewards - self.reward_offset
-            if self.fits_state_reward:  # phi(s) again: successor_targets subtracts it fused, without an (N, p) copy
-                rewards = rewards - self.phi(batch.obs) @ self.state_reward
-            target = torch.cat([target, (rewards / self.reward_scale).unsqueeze(1)], dim=1)
+            rewards = (batch.rewards - self.reward_offset) / self.reward_scale
+            target = torch.cat([target, rewards.unsqueeze(1)], dim=1)
         return target
 
     def regression_data(self, batch: Transitions) -> tuple[torch.Tensor, torch.Tensor]:
@@ -201,9 +161,9 @@ class CMEDynamics(nn.Module):
         return self.features(batch.obs, batch.actions), self.targets(batch)
 
     def calibrate_reward_row(self, rewards: torch.Tensor, terminated: torch.Tensor) -> str | None:
-        """Before the first feature, scale the learned reward row to unit spread and, with
-        ``off_data_reward="least"``, shift it by the least of 0 and the batch's non-terminal
-        rewards: what the model then predicts off the data. Where rewards are costs that is the
+        """Before the first feature, scale the learned reward row to unit spread and shift it by
+        the least of 0 and the batch's non-terminal rewards: what the model then predicts off the
+        data. Where rewards are costs that is the
         worst cost seen, a pessimism; it is never above 0, the offset-free row's value off the
         data; and a terminal transition's reward (a fall's, without the alive bonus) does not
         count, the termination model already pricing the fall. Both stay fixed: B's row is
@@ -216,52 +176,12 @@ class CMEDynamics(nn.Module):
         if not self.learn_reward or self.q > 0:
             return None
         self.reward_scale.fill_(float(rewards.std().clamp_min(1e-3)))
-        if self.off_data_reward == "least":
-            non_terminal = rewards[~terminated]
-            self.reward_offset.fill_(min(0.0, float(non_terminal.min())) if len(non_terminal) else 0.0)
-        off_data = (
-            "its state part's fit on phi (model_update.state_reward)"
-            if self.fits_state_reward
-            else f"{float(self.reward_offset):.4g} (model_update.off_data_reward={self.off_data_reward!r})"
-        )
+        non_terminal = rewards[~terminated]
+        self.reward_offset.fill_(min(0.0, float(non_terminal.min())) if len(non_terminal) else 0.0)
         return (
             f"Learned reward: {float(rewards.min()):.4g} to {float(rewards.max()):.4g} in the first batch; "
-            f"off the data the model predicts {off_data}."
+            f"off the data the model predicts {float(self.reward_offset):.4g} (the least of 0 and its non-terminal rewards)."
         )
-
-    def update_state_reward(self, new_data: Transitions, l2: float) -> int:
-        """The state part of the learned reward, ``c = argmin_c sum_D (r - <c, phi(s)>)^2 + lambda |c|^2``
-        (lambda = ``l2`` times the mean diagonal of the normal equations), from normal equations
-        accumulated as D grows: O(p^2) per new transition and one p x p solve, whatever |D|.
-        phi is a global basis, so between and beyond the visited states the fit holds where
-        psi's kernels fade to 0 (and the learned row alone would predict reward 0). A changed
-        observation box changes phi: the equations then restart from all of D.
-
-        :param new_data: D from row :attr:`state_reward_rows` on, or all of D after the box changed
-            (:meth:`state_reward_restarts`)
-        :param l2: relative ridge
-        :return: rows of D in the equations
-        """
-        if self.state_reward_restarts():
-            self.state_reward_gram.zero_()
-            self.state_reward_moments.zero_()
-            self.state_reward_rows.zero_()
-            self.state_reward_box.copy_(torch.stack([self.obs_encoder.center, self.obs_encoder.half_range]))
-        for start in range(0, len(new_data), REFIT_ROWS):
-            rows = new_data[start : start + REFIT_ROWS]
-            phi = self.phi(rows.obs).double()
-            self.state_reward_gram += phi.T @ phi
-            self.state_reward_moments += phi.T @ rows.rewards.double()
-        self.state_reward_rows += len(new_data)
-        gram = self.state_reward_gram.clone()
-        gram.diagonal().add_(l2 * float(gram.diagonal().mean()) + 1e-12)
-        self.state_reward.copy_(torch.linalg.solve(gram, self.state_reward_moments))
-        return int(self.state_reward_rows)
-
-    def state_reward_restarts(self) -> bool:
-        """True when phi changed since the state reward's equations were accumulated (a new box)."""
-        box = torch.stack([self.obs_encoder.center, self.obs_encoder.half_range])
-        return int(self.state_reward_rows) == 0 or not torch.equal(box, self.state_reward_box)
 
     # ------------------------------------------------------------------ loss and updates
     def predict(self, psi: torch.Tensor) -> torch.Tensor:
@@ -321,35 +241,21 @@ class CMEDynamics(nn.Module):
         residual = target_energy - 2 * float((solution * cross).sum()) + float((solution * (gram @ solution)).sum())
         return max(residual, 0.0) / len(batch)
 
-    def expand_observation_box(
-        self,
-        obs: torch.Tensor,
-        batch: Transitions,
-        l2: float,
-        data: Transitions | None = None,
-        state_reward_l2: float = ModelUpdateConfig.state_reward_l2,
-    ) -> str:
+    def expand_observation_box(self, obs: torch.Tensor, batch: Transitions, l2: float) -> str:
         """Widen the estimated observation box to cover ``obs`` (:meth:`ObservationEncoder.expand`)
         and carry the model into the new coordinates: psi's centres keep their env-unit
-        positions (:meth:`KernelBank.move_states`), phi follows the box by construction, the
-        state reward (with ``state_reward``) is fit again on all of D in the new phi, and then
-        B, whose targets phi changed, is refit on ``batch`` (:meth:`refit_weights`).
+        positions (:meth:`KernelBank.move_states`), phi follows the box by construction, and B,
+        whose targets phi changed, is refit on ``batch`` (:meth:`refit_weights`).
 
         :param obs: (N, obs_dim) observations the box must cover, env units
         :param batch: transitions B is refit on
         :param l2: ridge coefficient of the refit
-        :param data: all of D, to fit the state reward again before B is refit (with
-            ``state_reward``; None leaves the old fit in B's targets until the next
-            :meth:`update_state_reward`)
-        :param state_reward_l2: relative ridge of the state reward
         :return: the encoder's log line
         """
         encoder = self.obs_encoder
         center, half_range = encoder.center.clone(), encoder.half_range.clone()
         message = encoder.expand(obs)
         self.psi.move_states(half_range / encoder.half_range, (center - encoder.center) / encoder.half_range)
-        if self.fits_state_reward and data is not None:
-            self.update_state_reward(data, state_reward_l2)  # the box changed: restarts from all of D
         if self.q > 0:
             self.refit_weights(batch, l2)
         return message
@@ -398,10 +304,6 @@ class CMEDynamics(nn.Module):
             state_dict[prefix + "reward_offset"] = torch.zeros_like(self.reward_offset)
         if prefix + "action_scale" not in state_dict:  # saved before the scale: the action entered psi unscaled
             state_dict[prefix + "action_scale"] = torch.ones_like(self.action_scale)
-        if self.fits_state_reward and prefix + "state_reward" not in state_dict:  # saved before the state reward: c = 0
-            for name, buffer in self.named_buffers(recurse=False):
-                if name.startswith("state_reward"):
-                    state_dict[prefix + name] = torch.zeros_like(buffer)  # rows 0: the next update starts from all of D
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     # ------------------------------------------------------------------ what planning reads
@@ -432,7 +334,7 @@ class CMEDynamics(nn.Module):
         ``r(s, a) = step_reward(s, a) + <c_phi, phi(s)> + <c_psi, psi(s, a)>``:
         the terminal bonus times P_model(terminate | s, a) (read off the constant row of phi:
         E[1 - done] = 1 + B_const psi with feature dynamics), plus the learned reward row, its
-        offset on phi's constant and, with ``state_reward``, the learned reward's state part on phi.
+        offset on phi's constant.
 
         :return: c_phi (p,) and c_psi (q,)
         """
@@ -446,8 +348,6 @@ class CMEDynamics(nn.Module):
         if self.learn_reward:
             c_psi += self.weights[-1] * self.reward_scale
             c_phi[-1] += self.reward_offset
-        if self.fits_state_reward:
-            c_phi += self.state_reward
         return c_phi, c_psi
 
     def expected_reward(self, obs: torch.Tensor, actions: torch.Tensor, phi: torch.Tensor, psi: torch.Tensor) -> torch.Tensor:

@@ -18,8 +18,7 @@ DIVERGENCE_FACTOR = 10.0
 
 class ModelTrainer:
     """Owns how B is learned (``model_update``): the exact ridge refit on a fixed-size sample of
-    D or the paper's SGD steps, the guard against a diverging SGD step, the held-out loss, and
-    the state part of a learned reward.
+    D or the paper's SGD steps, the guard against a diverging SGD step, and the held-out loss.
 
     Every call touches a fixed-size sample of D (or only its new rows), so its cost is flat in |D|.
 
@@ -114,14 +113,3 @@ class ModelTrainer:
                 stacklevel=3,
             )
         return loss_after
-
-    def fit_state_reward(self, dynamics: CMEDynamics, store: TransitionStore) -> None:
-        """With a learned reward and ``state_reward``, its state part ``<c, phi(s)>`` by ridge
-        regression on all of D, the normal equations updated with the rows not yet in them (all
-        of D after the box changed); B's reward row then fits the rest.
-
-        :param dynamics: the model, with ``fits_state_reward``
-        :param store: D
-        """
-        start = 0 if dynamics.state_reward_restarts() else int(dynamics.state_reward_rows)
-        dynamics.update_state_reward(store.get(slice(start, len(store))), self.config.state_reward_l2)

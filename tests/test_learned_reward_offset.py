@@ -1,7 +1,6 @@
-"""What a learned reward predicts off the data (``model_update.off_data_reward``): psi's kernels
-fade away from the visited state-actions, so its reward row predicts its own offset there — by
-default the least of 0 and the first batch's non-terminal rewards, 0 with ``"zero"`` — while on
-the data both fit r."""
+"""What a learned reward predicts off the data: psi's kernels fade away from the visited
+state-actions, so its reward row predicts its own offset there, the least of 0 and the first
+batch's non-terminal rewards, while on the data it fits r."""
 
 from __future__ import annotations
 
@@ -15,7 +14,6 @@ from gymnasium import spaces
 
 from cme_agent import CMEPolicyIteration
 from cme_agent.buffer import Transitions
-from cme_agent.config import ModelUpdateConfig
 from cme_agent.dynamics import CMEDynamics
 
 OBS_SPACE = spaces.Box(np.full(2, -4.0, np.float32), np.full(2, 4.0, np.float32), dtype=np.float32)
@@ -31,9 +29,9 @@ def _costs(n: int, seed: int) -> Transitions:
     return Transitions(obs, actions, rewards, obs.clone(), torch.zeros(n, dtype=torch.bool))
 
 
-def _fitted(off_data_reward: str) -> tuple[CMEDynamics, Transitions]:
+def _fitted() -> tuple[CMEDynamics, Transitions]:
     """A model whose psi has kernels at 300 of the data's state-actions and B by ridge on them."""
-    dynamics = CMEDynamics(OBS_SPACE, ACTION_SPACE, {"kind": "fourier", "max_width": 101}, off_data_reward=off_data_reward)
+    dynamics = CMEDynamics(OBS_SPACE, ACTION_SPACE, {"kind": "fourier", "max_width": 101})
     data = _costs(2000, 0)
     dynamics.calibrate_reward_row(data.rewards[:500], data.terminated[:500])
     z = dynamics.encode(data.obs[:300], data.actions[:300])
@@ -46,23 +44,20 @@ def _reward(dynamics: CMEDynamics, obs: torch.Tensor, actions: torch.Tensor) -> 
     return dynamics.expected_reward(obs, actions, dynamics.phi(obs), dynamics.features(obs, actions))
 
 
-@pytest.mark.parametrize("off_data_reward", ["least", "zero"])
-def test_on_the_data_both_fit_the_reward_and_off_it_the_row_predicts_its_offset(off_data_reward: str):
-    dynamics, data = _fitted(off_data_reward)
+def test_on_the_data_it_fits_the_reward_and_off_it_the_row_predicts_its_offset():
+    dynamics, data = _fitted()
     unseen = _costs(500, 1)  # between the kernels' centres
     error = _reward(dynamics, unseen.obs, unseen.actions) - unseen.rewards
     assert float(error.pow(2).mean() / unseen.rewards.var()) < 0.05
     far = torch.tensor([[3.8, 3.8], [-3.8, 3.8], [3.8, -3.8]])  # the box's corners: psi ~ 0
     assert float(dynamics.features(far, torch.zeros(3, 1)).abs().max()) < 1e-6
     least = float(data.rewards[:500].min())
-    expected = least if off_data_reward == "least" else 0.0
-    torch.testing.assert_close(_reward(dynamics, far, torch.zeros(3, 1)), torch.full((3,), expected), atol=1e-3, rtol=0)
-    if off_data_reward == "least":
-        assert least < -2.9  # the first batch's least cost, not the mean
+    torch.testing.assert_close(_reward(dynamics, far, torch.zeros(3, 1)), torch.full((3,), least), atol=1e-3, rtol=0)
+    assert least < -2.9  # the first batch's least cost, not the mean
 
 
 def test_the_offset_is_set_once_before_the_first_feature():
-    dynamics, _ = _fitted("least")
+    dynamics, _ = _fitted()
     offset = float(dynamics.reward_offset)
     dynamics.calibrate_reward_row(torch.tensor([-50.0, 10.0]), torch.zeros(2, dtype=torch.bool))  # q > 0: units fixed
     assert float(dynamics.reward_offset) == offset
@@ -84,43 +79,27 @@ def test_the_offset_is_the_least_of_0_and_the_non_terminal_rewards(rewards, term
     assert float(dynamics.reward_offset) == offset
 
 
-def test_with_the_state_reward_the_row_learns_the_rest_from_0():
-    dynamics = CMEDynamics(OBS_SPACE, ACTION_SPACE, {"kind": "fourier", "max_width": 101}, state_reward=True)
-    dynamics.calibrate_reward_row(torch.tensor([-3.0, -1.0]), torch.zeros(2, dtype=torch.bool))
-    assert dynamics.off_data_reward == "zero" and float(dynamics.reward_offset) == 0.0
-
-
-def test_an_unknown_choice_is_refused():
-    with pytest.raises(ValueError, match=r"model_update.off_data_reward.*least"):
-        ModelUpdateConfig(off_data_reward="mean")
-    with pytest.raises(ValueError, match=r"model_update\.off_data_reward='mean' is invalid"):
-        CMEDynamics(OBS_SPACE, ACTION_SPACE, off_data_reward="mean")
-
-
 def test_the_agent_sets_it_from_its_first_batch_says_so_and_it_survives_save_load(tmp_path: Path, capsys):
     from gymnasium.envs.classic_control import PendulumEnv
 
     env = gym.wrappers.TimeLimit(PendulumEnv(), 200)  # no id: the reward is learned, every reward <= 0
     agent = CMEPolicyIteration("CMEPolicy", env, seed=0, steps_per_iteration=100, verbose=1)
-    assert agent.reward_source == "learned" and agent.dynamics.off_data_reward == "least"
+    assert agent.reward_source == "learned"
     agent.learn(300)
     offset = float(agent.dynamics.reward_offset)
     assert offset < -1.0 and offset >= float(agent.store.get(slice(0, len(agent.store))).rewards.min())
     said = capsys.readouterr().out
-    assert f"off the data the model predicts {offset:.4g} (model_update.off_data_reward='least')" in said
+    assert f"off the data the model predicts {offset:.4g} (the least of 0 and its non-terminal rewards)" in said
     assert said.count("Learned reward:") == 1  # once, before the first feature
     agent.save(tmp_path / "agent")
     loaded = CMEPolicyIteration.load(tmp_path / "agent", env=env)
     assert float(loaded.dynamics.reward_offset) == offset
     obs = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 2.0]], dtype=np.float32)
     assert np.array_equal(loaded.predict(obs, deterministic=True)[0], agent.predict(obs, deterministic=True)[0])
-    zero = CMEPolicyIteration("CMEPolicy", env, seed=0, steps_per_iteration=100, model_update={"off_data_reward": "zero"})
-    zero.learn(100)
-    assert float(zero.dynamics.reward_offset) == 0.0
 
 
 def test_a_model_saved_before_the_offset_loads_with_offset_zero():
-    dynamics, _ = _fitted("zero")
+    dynamics, _ = _fitted()
     state = dynamics.state_dict()
     del state["reward_offset"]
     new = CMEDynamics(OBS_SPACE, ACTION_SPACE, {"kind": "fourier", "max_width": 101})
