@@ -138,12 +138,12 @@ class CMEPolicy(BasePolicy):
         self.dynamics = CMEDynamics(
             observation_space,
             action_space,
-            phi,
-            self.observation_config,
-            feature_dynamics,
-            reward,
-            evaluation,
-            action_scale,
+            phi=phi,
+            observation=self.observation_config,
+            feature_dynamics=feature_dynamics,
+            reward=reward,
+            evaluation=evaluation,
+            action_scale=action_scale,
         )
         self.register_buffer("theta_phi", torch.zeros(self.dynamics.p))
         self.register_buffer("theta_psi", torch.zeros(0))
