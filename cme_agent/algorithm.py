@@ -1,24 +1,11 @@
 """CMEPolicyIteration: policy iteration with an online CME dynamics model (paper Algorithm 1).
 
-Each iteration of :meth:`CMEPolicyIteration.learn` is one pass of Algorithm 1, one call per step:
-
-1. :meth:`~CMEPolicyIteration.data_acquisition` -- m env steps of the greedy policy mixed
-   with a noisy version of it, aggregated into the store D;
-
-then :meth:`~CMEPolicyIteration.train_iteration` on the new data:
-
-2. :meth:`~CMEPolicyIteration.feature_selection` -- matching pursuit, eq. (5)
-   (:class:`~cme_agent.dynamics.selection.FeatureSelector`);
-3. :meth:`~CMEPolicyIteration.model_update` -- B learned on a fixed-size sample of D, exactly or
-   by the paper's SGD steps, eq. (6) (:class:`~cme_agent.dynamics.trainer.ModelTrainer`);
-4. ``evaluation.rounds`` times on a fresh collection C of states:
-   :meth:`~CMEPolicyIteration.policy_evaluation` (eq. (7),
-   :class:`~cme_agent.evaluation.PolicyEvaluator`) and
-   :meth:`~CMEPolicyIteration.policy_improvement` (Q smoothing, :meth:`CMEPolicy.improve`).
-
-Each step's owner holds its settings and procedure; this module holds the set-up, the loop
-and the logging. Every step touches a fixed-size sample of D or only the m new transitions,
-so the cost of an iteration grows with q (the number of features), never with |D|.
+Each iteration of :meth:`CMEPolicyIteration.learn` is one pass of Algorithm 1, one call per step
+into the step's owner: data acquisition into D; feature selection, eq. (5) (:class:`FeatureSelector`);
+the model update, eq. (6) (:class:`ModelTrainer`); then ``evaluation.rounds`` times policy
+evaluation, eq. (7) (:class:`PolicyEvaluator`), and improvement (:meth:`CMEPolicy.improve`).
+This module holds the set-up, the loop and the logging. Every step touches a fixed-size sample
+of D or only the m new transitions, so an iteration's cost grows with q, never with |D|.
 """
 
 from __future__ import annotations
@@ -40,13 +27,8 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.utils import safe_mean
 
 from cme_agent.buffer import Transitions, TransitionStore, vector_step_successors
-from cme_agent.config import (
-    EvaluationConfig,
-    ExplorationConfig,
-    FeatureSelectionConfig,
-    ImprovementConfig,
-    ModelUpdateConfig,
-)
+from cme_agent.config import EvaluationConfig, ExplorationConfig, FeatureSelectionConfig, ImprovementConfig, ModelUpdateConfig
+from cme_agent.dashboards import EvalEnv, with_dashboards
 from cme_agent.dynamics import CMEDynamics
 from cme_agent.dynamics.box import ObservationBox
 from cme_agent.dynamics.selection import FeatureSelector
@@ -55,8 +37,18 @@ from cme_agent.evaluation import PolicyEvaluator
 from cme_agent.exploration import BehaviourPolicy
 from cme_agent.persistence import PersistenceMixin, plain
 from cme_agent.policy import CMEPolicy
-from cme_agent.rewards import RewardSpec, StepReward, resolve_reward
-from cme_agent.settings import check_spaces, env_identity, env_name, local_env, resolve_settings
+from cme_agent.presets import GROUPS
+from cme_agent.rewards import RewardSpec, StepReward
+from cme_agent.settings import (
+    agent_reward,
+    check_policy,
+    check_spaces,
+    env_identity,
+    env_name,
+    resolve_settings,
+    reward_message,
+)
+from cme_agent.threads import DEFAULT_THREADS, check_threads, torch_threads
 
 SelfCME = TypeVar("SelfCME", bound="CMEPolicyIteration")
 
@@ -93,6 +85,10 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
     :param verbose: 0 silent, 1 info
     :param seed: seed of every random draw of the agent
     :param device: torch device (``"auto"``: CUDA if available)
+    :param n_threads: torch's CPU threads while :meth:`learn` runs (the caller's setting is put back
+        after it); default :data:`~cme_agent.threads.DEFAULT_THREADS` (1), what ``python -m
+        benchmarks.threads`` measured fastest on a shared machine; None: torch's own setting, left
+        as it is. Like ``device``, not saved with the model: pass it to ``load()`` again
     :param _init_setup_model: build the model at construction (False when loading)
     """
 
@@ -120,8 +116,11 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         verbose: int = 0,
         seed: int | None = None,
         device: torch.device | str = "auto",
+        n_threads: int | None = DEFAULT_THREADS,
         _init_setup_model: bool = True,
     ) -> None:
+        self.n_threads = check_threads(n_threads)
+        check_policy(policy, self.policy_aliases)  # before SB3's bare "Policy MlpPolicy unknown"
         super().__init__(
             policy,
             env,
@@ -152,6 +151,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             given,
             self.policy_class,
             set(inspect.signature(CMEPolicyIteration.__init__).parameters) - {"self", "policy", "env"},
+            self.env_kwargs,
         )
         self.gamma, self.omega = settings.agent.gamma, settings.agent.omega
         self.steps_per_iteration = settings.agent.steps_per_iteration
@@ -183,7 +183,10 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         self._torch_rng = torch.Generator().manual_seed(self.seed)
         self._np_rng = np.random.default_rng(self.seed)
         self.policy_kwargs = {"candidate_seed": self.seed, **self.policy_kwargs}
-        reward, self.reward_source = self._resolve_reward()
+        # a loaded model keeps the reward source it was trained with
+        reward, self.reward_source = agent_reward(
+            self.reward_fn, getattr(self, "reward_source", None), self.env, self.env_id, self.env_kwargs
+        )
         self.policy = self.policy_class(
             self.observation_space,
             self.action_space,
@@ -217,16 +220,6 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         """q, the number of selected kernel features of psi."""
         return self.policy.dynamics.q
 
-    def _resolve_reward(self) -> tuple[RewardSpec | None, str]:
-        """The reward to plan with and its source; a loaded model keeps the source it was trained with."""
-        saved_source = getattr(self, "reward_source", None)
-        if saved_source == "user" and self.reward_fn is None:
-            raise ValueError("this model was trained with a user-supplied reward: pass reward_fn= to load()")
-        if saved_source == "learned":
-            return None, "learned"
-        env = local_env(self.env, self.env_id, self.env_kwargs, remake=saved_source == "env")
-        return resolve_reward(self.reward_fn, self.env_id, env)
-
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         """Continue on ``env`` (its spaces must match). Unlike SB3's agents any number of envs
         is accepted: the behaviour policy is rebuilt for it at the next ``learn()``.
@@ -250,15 +243,35 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         tb_log_name: str = "CME",
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
+        eval_env: EvalEnv | None = None,
+        eval_every: int = 1000,
+        n_eval_episodes: int = 10,
     ) -> SelfCME:
-        """Run Algorithm 1 until ``total_timesteps`` env steps have been taken.
+        """Run Algorithm 1 until ``total_timesteps`` env steps have been taken, with torch at
+        ``n_threads`` CPU threads (the caller's setting is put back afterwards).
+
+        The dashboards of ``train.py`` come along (:func:`~cme_agent.dashboards.training_dashboards`):
+        the returns of the greedy and the noisy training episodes apart
+        (``rollout/greedy_ep_rew_mean``, ``rollout/explore_ep_rew_mean``), the pictures whenever
+        the logger writes TensorBoard (``tensorboard_log=``), and with ``eval_env`` the
+        deterministic policy's ``eval/mean_reward`` every ``eval_every`` env steps and at the end;
+        a callback of either kind you pass replaces the default one.
 
         :param total_timesteps: env steps to take (all envs together)
         :param callback: called once per env step (``on_step``); training stops when it returns False
-        :param log_interval: iterations between log dumps
+        :param log_interval: iterations between log dumps (SB3's table on stdout at ``verbose=1``,
+            TensorBoard): 10 prints a tenth of the tables
         :param tb_log_name: name of the TensorBoard run
         :param reset_num_timesteps: start counting from 0 (else continue the count)
-        :param progress_bar: show a progress bar (tqdm + rich)
+        :param progress_bar: show a progress bar (tqdm + rich) with the ETA and, with
+            ``eval_env``, the last evaluation's return
+        :param eval_env: the env to evaluate the deterministic policy on: an env id (the
+            training env's make-kwargs when it is its id), an env, a VecEnv or a function
+            returning a fresh env; its starts are seeded with the agent's seed + 10,000, the
+            same for every evaluation. None: no evaluation
+        :param eval_every: env steps between evaluations, at the first iteration boundary at or
+            after each multiple (0: only of the final policy)
+        :param n_eval_episodes: episodes per evaluation
         :return: the trained agent
         """
         if self.env is None:
@@ -266,23 +279,25 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
                 "this agent has no env to learn on (it was loaded without one): pass it to "
                 "CMEPolicyIteration.load(path, env=...) or call set_env(env) before learn()"
             )
-        total_timesteps, callback = self._setup_learn(
-            total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar
-        )
-        callback.on_training_start(locals(), globals())
-        self._announce_settings()
-        if self._behaviour is None or len(self._behaviour.explore) != self.n_envs:
-            self._behaviour = self._make_behaviour()
-        while self.num_timesteps < total_timesteps:
-            steps = min(self.steps_per_iteration, total_timesteps - self.num_timesteps)
-            self._phase_seconds = {}
-            new_data = self.data_acquisition(callback, math.ceil(steps / self.n_envs))
-            if new_data is None:
-                break
-            self.train_iteration(new_data)
-            if log_interval > 0 and self.iteration % log_interval == 0:
-                self.dump_logs()
-        callback.on_training_end()
+        callback, progress_bar = with_dashboards(self, callback, eval_env, eval_every, n_eval_episodes, progress_bar)
+        with torch_threads(self.n_threads):
+            total_timesteps, callback = self._setup_learn(
+                total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar
+            )
+            callback.on_training_start(locals(), globals())
+            self._announce_settings()
+            if self._behaviour is None or len(self._behaviour.explore) != self.n_envs:
+                self._behaviour = self._make_behaviour()
+            while self.num_timesteps < total_timesteps:
+                steps = min(self.steps_per_iteration, total_timesteps - self.num_timesteps)
+                self._phase_seconds = {}
+                new_data = self.data_acquisition(callback, math.ceil(steps / self.n_envs))
+                if new_data is None:
+                    break
+                self.train_iteration(new_data)
+                if log_interval > 0 and self.iteration % log_interval == 0:
+                    self.dump_logs()
+            callback.on_training_end()
         return self
 
     @torch.no_grad()
@@ -369,7 +384,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
 
     def policy_evaluation(self, states: torch.Tensor) -> torch.Tensor:
         """Policy evaluation, eq. (7) (:meth:`PolicyEvaluator.evaluate`): value weights w of the
-        current policy on C by Bellman residual minimisation (or LSTD).
+        current policy on C by Bellman residual minimisation.
 
         :param states: (|C|, obs_dim) the collection C
         :return: (p,) value weights w, V(s) = <w, phi(s)>
@@ -407,11 +422,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             "gamma": self.gamma,
             "omega": self.omega,
             "steps_per_iteration": self.steps_per_iteration,
-            "feature_selection": plain(self.feature_selection_config),
-            "model_update": plain(self.model_update_config),
-            "evaluation": plain(self.evaluation_config),
-            "exploration": plain(self.exploration_config),
-            "improvement": plain(self.improvement_config),
+            **{group: plain(getattr(self, f"{group}_config")) for group in GROUPS},
             "reset_envs_each_iteration": self.reset_envs_each_iteration,
             "policy_kwargs": plain(self.policy_kwargs),
             "stats_window_size": self.stats_window_size,
@@ -432,14 +443,8 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         """Say which preset was applied and which reward the agent plans with."""
         if self.preset_message is not None and self.verbose >= 1:
             self.logger.info(self.preset_message)
-        name = env_name(self.env, self.env_id)
-        if self.reward_source == "learned":
-            self.logger.info(
-                f"No reward function is known for env {name}: the reward is learned by regression on psi "
-                "(pass reward_fn= for a known one)."
-            )
-        elif self.verbose >= 1:
-            self.logger.info(f"Planning with the {self.reward_source} reward of env {name}.")
+        if self.reward_source == "learned" or self.verbose >= 1:  # a learned reward is always said
+            self.logger.info(reward_message(self.reward_source, env_name(self.env, self.env_id)))
 
     def dump_logs(self) -> None:
         """Write SB3's rollout/time keys, our train/ keys and the seconds of each phase."""

@@ -26,11 +26,15 @@ from stable_baselines3.common.vec_env import VecEnv
 
 
 class IterationCheckpoint(BaseCallback):
-    """Save a resumable checkpoint (model + transition store + RNG state) at iteration boundaries.
+    """Save a resumable checkpoint (model + transition store + RNG state) at iteration boundaries,
+    every ``every`` iterations and at the end of training.
 
     It hooks ``on_rollout_start``, which the agent calls at the start of each iteration's data
     acquisition, so a checkpoint always holds a whole number of iterations; the file is
-    replaced atomically, so a crash leaves the previous checkpoint intact.
+    replaced atomically, so a crash leaves the previous checkpoint intact. When ``learn()`` ends
+    having taken all its steps, the end is checkpointed too, so the checkpoint is never older
+    than the model saved after training and a run shorter than ``every`` iterations has one; a
+    ``learn()`` stopped by a callback (e.g. :class:`StopOnSignal`, which writes its own) is not.
 
     :param path: the checkpoint file (overwritten each time)
     :param every: iterations between checkpoints
@@ -47,10 +51,17 @@ class IterationCheckpoint(BaseCallback):
 
     def _on_rollout_start(self) -> None:
         if self._rollouts > 0 and self._rollouts % self.every == 0:
-            self.model.save(self.path, include=["replay_buffer"])
-            if self.verbose:
-                print(f"checkpoint at {self.model.num_timesteps} steps: {self.path}")
+            self._save()
         self._rollouts += 1
+
+    def _on_training_end(self) -> None:
+        if self.model.num_timesteps >= self.model._total_timesteps:  # completed, at an iteration boundary
+            self._save()
+
+    def _save(self) -> None:
+        self.model.save(self.path, include=["replay_buffer"])
+        if self.verbose:
+            print(f"checkpoint at {self.model.num_timesteps} steps: {self.path}")
 
     def _on_step(self) -> bool:
         return True
@@ -109,6 +120,8 @@ class PeriodicEvaluation(BaseCallback):
     :param eval_every: env steps between evaluations; 0: only when :meth:`evaluate` is called
     :param n_eval_episodes: episodes per evaluation
     :param log_path: ``evaluations.npz`` to write (None: none)
+    :param close: close each env after its evaluation (False: ``make_eval_env`` hands out an env
+        that lives on, e.g. the user's own, reseeded each time)
     :param verbose: 1 to print a line per evaluation
     """
 
@@ -118,6 +131,7 @@ class PeriodicEvaluation(BaseCallback):
         eval_every: int,
         n_eval_episodes: int = 10,
         log_path: str | pathlib.Path | None = None,
+        close: bool = True,
         verbose: int = 0,
     ) -> None:
         super().__init__(verbose)
@@ -129,6 +143,7 @@ class PeriodicEvaluation(BaseCallback):
         self.eval_every = eval_every
         self.n_eval_episodes = n_eval_episodes
         self.log_path = pathlib.Path(log_path) if log_path is not None else None
+        self.close = close
         self.evaluations: list[Evaluation] = []
         self._next = 0
 
@@ -157,7 +172,8 @@ class PeriodicEvaluation(BaseCallback):
         returns, lengths = evaluate_policy(
             self.model, env, n_eval_episodes=self.n_eval_episodes, deterministic=True, return_episode_rewards=True
         )
-        env.close()
+        if self.close:
+            env.close()
         evaluation = Evaluation(self.model.num_timesteps, tuple(map(float, returns)), tuple(map(int, lengths)))
         self.evaluations.append(evaluation)
         if self.log_path is not None:

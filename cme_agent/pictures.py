@@ -24,9 +24,11 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 import torch
 from gymnasium import spaces
+from gymnasium.envs.registration import load_env_creator
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import HParam, Image, TensorBoardOutputFormat
@@ -43,7 +45,7 @@ OBSERVATION_NAMES: dict[str, tuple[str, ...]] = {
     "CartPole-v1": ("cart position", "cart velocity", "pole angle [rad]", "pole angular velocity"),
     "Acrobot-v1": ("cos theta1", "sin theta1", "cos theta2", "sin theta2", "theta1 dot", "theta2 dot"),
 }
-"""Axis names of the observation dims of some envs (else ``obs[i]``)."""
+"""Axis names of the observation dims of some envs that do not name them (else ``obs[i]``)."""
 
 ANGLE_NAMES: dict[str, dict[int, str]] = {
     "Pendulum-v1": {0: "theta [rad]"},
@@ -65,6 +67,25 @@ HOLDOUT_SAMPLES = 8192
 PICTURE_TAGS = ("pictures/value", "pictures/greedy_action", "pictures/model_error", "pictures/feature_centres")
 DEFAULT_METRICS = ("eval/mean_reward", "rollout/ep_rew_mean", "train/model_loss")
 """Scalars that TensorBoard's HParams tab shows against the hyperparameters."""
+
+
+def observation_names(env_id: str | None) -> tuple[str, ...] | None:
+    """Axis names of the observation dims of a registered env: those its class declares
+    (``observation_names``, as :class:`~cme_agent.envs.quadcopter.QuadcopterEnv` does), else
+    :data:`OBSERVATION_NAMES`' (None: neither).
+
+    :param env_id: the env's registered id
+    """
+    if env_id is not None and env_id in gym.registry:
+        entry_point = gym.spec(env_id).entry_point
+        try:
+            creator = load_env_creator(entry_point) if isinstance(entry_point, str) else entry_point
+        except (ImportError, AttributeError):  # an entry point that does not load here
+            creator = None
+        declared = getattr(creator, "observation_names", None)
+        if declared is not None:
+            return tuple(declared)
+    return OBSERVATION_NAMES.get(env_id)
 
 
 @dataclass(frozen=True)
@@ -295,14 +316,16 @@ def agent_pictures(
     :param resolution: cells per axis (V and the action are computed at resolution^2 states)
     :param fixed: values of the coordinates off the slice, keyed by observation dim (an angle
         pair's value in radians); default: the box centre, angle 0
-    :param names: axis names of the observation dims (default: known names for some env ids, else ``obs[i]``)
+    :param names: axis names of the observation dims (default: the env's, :func:`observation_names`, else ``obs[i]``)
     :return: tag (:data:`PICTURE_TAGS`) -> (H, W, 3) uint8 RGB image
     """
     encoder = agent.dynamics.obs_encoder
     if encoder.needs_fit:
         return {}
     env_id = getattr(agent, "env_id", None)
-    dims = folded_dims(encoder, names or OBSERVATION_NAMES.get(env_id), None if names else ANGLE_NAMES.get(env_id))
+    known = names or observation_names(env_id)
+    known = known if known is not None and len(known) == encoder.dim else None  # a name per dim, or none
+    dims = folded_dims(encoder, known, None if names else ANGLE_NAMES.get(env_id))
     shown = choose_dims(dims, picture_dims)
     axes = _axes(dims, shown)
     shape = (resolution,) if len(shown) == 1 else (resolution, resolution)

@@ -1,4 +1,8 @@
-"""The SB3 logger of a run directory, which a resumed run continues rather than restarts.
+"""The SB3 logger of a run directory, which a resumed run continues rather than restarts, and
+what it prints.
+
+At ``verbose=1`` stdout gets SB3's table every ``log_interval`` iterations and one line per
+evaluation, beside the progress bar; ``progress.csv`` and TensorBoard get every iteration.
 
 A run resumed from a checkpoint taken at step T writes into the same folder: ``progress.csv``
 keeps its rows up to step T and goes on from there, and the TensorBoard events of the
@@ -11,11 +15,48 @@ from __future__ import annotations
 import csv
 import pathlib
 import sys
+from collections.abc import Sequence
+from typing import Any
 
 from stable_baselines3.common.logger import CSVOutputFormat, HumanOutputFormat, KVWriter, Logger, TensorBoardOutputFormat
 from torch.utils.tensorboard import SummaryWriter
+from tqdm import tqdm
 
 STEP_KEY = "time/total_timesteps"  # the step column of progress.csv
+EVAL_KEY = "eval/mean_reward"  # the key of an evaluation's dump (cme_agent.callbacks.PeriodicEvaluation)
+
+
+class SummaryOutputFormat(HumanOutputFormat):
+    """SB3's stdout table, of every ``every``-th dump of training only, and each evaluation as one line
+    (``evaluation at 2000 steps: -143.2 +- 27.2, episodes of 200.0 steps``).
+
+    Lines go through ``tqdm.write``, so that they appear above a progress bar rather than through it.
+
+    :param every: dumps (iterations, for CMEPolicyIteration) between tables; 0: no table
+    """
+
+    def __init__(self, every: int) -> None:
+        super().__init__(sys.stdout)
+        self.every = every
+        self._dumps = 0
+
+    def write(self, key_values: dict[str, Any], key_excluded: dict[str, tuple[str, ...]], step: int = 0) -> None:
+        if EVAL_KEY in key_values:
+            self._emit(
+                f"evaluation at {step} steps: {key_values[EVAL_KEY]:.1f} +- {key_values['eval/std_reward']:.1f}, "
+                f"episodes of {key_values['eval/mean_ep_length']:.1f} steps"
+            )
+            return
+        self._dumps += 1
+        if self.every and self._dumps % self.every == 0:
+            super().write(key_values, key_excluded, step)  # SB3's table, written through tqdm.write
+
+    def write_sequence(self, sequence: Sequence[Any]) -> None:
+        self._emit(" ".join(map(str, sequence)))
+
+    def _emit(self, line: str) -> None:
+        tqdm.write(line, file=sys.stdout)  # sys.stdout as it is now: a progress bar's, while one is shown
+        sys.stdout.flush()
 
 
 class ResumedTensorBoardFormat(TensorBoardOutputFormat):
@@ -54,17 +95,23 @@ def resumed_csv(path: pathlib.Path, last_step: int) -> CSVOutputFormat:
     return output
 
 
-def configure_run_logger(run_dir: pathlib.Path, verbose: int, resumed_at: int | None = None) -> Logger:
-    """The logger of ``train.py``: SB3's log table on stdout (``verbose``), ``progress.csv`` and
-    TensorBoard events in ``run_dir``, continuing those of an interrupted run when ``resumed_at``.
+def configure_run_logger(run_dir: pathlib.Path, verbose: int, resumed_at: int | None = None, log_interval: int = 1) -> Logger:
+    """The logger of ``train.py``: stdout (``verbose``), ``progress.csv`` and TensorBoard events in
+    ``run_dir``, continuing those of an interrupted run when ``resumed_at``.
 
     :param run_dir: the run directory
-    :param verbose: 1 to print SB3's log tables
+    :param verbose: 0 nothing on stdout; 1 SB3's table every ``log_interval`` iterations and one
+        line per evaluation (:class:`SummaryOutputFormat`); 2 every table, evaluations' too
     :param resumed_at: the step of the checkpoint the run resumes from (None: a new run)
+    :param log_interval: iterations between the tables printed at ``verbose=1`` (0: none)
     :return: a logger for ``model.set_logger``
     """
     run_dir.mkdir(parents=True, exist_ok=True)
-    formats: list[KVWriter] = [HumanOutputFormat(sys.stdout)] if verbose else []
+    formats: list[KVWriter] = []
+    if verbose == 1:
+        formats.append(SummaryOutputFormat(log_interval))
+    elif verbose >= 2:
+        formats.append(HumanOutputFormat(sys.stdout))
     if resumed_at is None:
         formats += [CSVOutputFormat(str(run_dir / "progress.csv")), TensorBoardOutputFormat(str(run_dir))]
     else:

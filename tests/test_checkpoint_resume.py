@@ -42,10 +42,10 @@ def test_resumed_run_ends_with_the_same_parameters(tmp_path, pendulum_kwargs):
 
     interrupted = _agent(pendulum_kwargs)
     interrupted.learn(300, callback=IterationCheckpoint(tmp_path / "ckpt.zip", every=1))
-    # the last checkpoint was taken at the start of iteration 3 (200 steps): resume from there
+    # the last checkpoint is of the end of learn() (300 steps): resume from there
     resumed = CMEPolicyIteration.load(tmp_path / "ckpt.zip", env=make_vec_env("Pendulum-v1", n_envs=1, seed=123))
-    assert resumed.num_timesteps == 200
-    resumed.learn(300, reset_num_timesteps=False)
+    assert resumed.num_timesteps == 300
+    resumed.learn(200, reset_num_timesteps=False)
     assert resumed.num_timesteps == 500
     for name in ("theta_psi", "theta_phi"):
         assert torch.equal(getattr(resumed.policy, name), getattr(uninterrupted.policy, name)), name

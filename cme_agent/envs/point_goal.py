@@ -42,6 +42,8 @@ class PointGoal2D(gym.Env[np.ndarray, np.ndarray]):
     """
 
     metadata: dict[str, Any] = {"render_modes": []}  # noqa: RUF012
+    observation_names = ("x", "y", "vx", "vy")
+    """A name per observation dim (the TensorBoard pictures' axes)."""
 
     def __init__(self, goal: tuple[float, float] = (0.6, -0.4), dt: float = 0.1, damping: float = 0.9) -> None:
         self.observation_space = spaces.Box(-np.inf, np.inf, (4,), np.float32)

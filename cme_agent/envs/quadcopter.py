@@ -120,6 +120,23 @@ class QuadcopterEnv(gym.Env[np.ndarray, np.ndarray]):
     :param render_size: height of the rendered image (pixels); its width is twice that.
     """
 
+    observation_names = (
+        "x, north [m]",
+        "y, east [m]",
+        "z, down [m]",
+        "roll phi [rad]",
+        "pitch theta [rad]",
+        "yaw psi [rad]",
+        "u, body forward [m/s]",
+        "v, body right [m/s]",
+        "w, body down [m/s]",
+        "roll rate p [rad/s]",
+        "pitch rate q [rad/s]",
+        "yaw rate r [rad/s]",
+        "thrust F [N]",
+    )
+    """A name per observation dim, with its unit (the TensorBoard pictures' axes)."""
+
     # Gymnasium's class attribute; __init__ replaces it with a copy whose fps is 1 / agent_dt.
     metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 5}  # noqa: RUF012
 
