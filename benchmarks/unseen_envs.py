@@ -59,6 +59,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 import cme_agent  # noqa: F401  (registers PointGoal2D-v0, in the spawned job processes too)
 from benchmarks.common import RESULTS, code_version, command_line, markdown_table, pyplot, resident_bytes, save_record
+from cme_agent.references import RandomPolicy
 
 CUSTOM_ENV = "PointGoal2D-v0"
 ENVS = ("InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Reacher-v5", CUSTOM_ENV)
@@ -103,22 +104,6 @@ class Job:
 def runs_dir(out: Path) -> Path:
     """Where the job records of a results folder go."""
     return out / "unseen_envs" / "runs"
-
-
-class RandomAgent:
-    """Uniform random actions, with the ``predict`` of an SB3 model.
-
-    :param action_space: the env's action space
-    :param seed: seed of the action draws
-    """
-
-    def __init__(self, action_space: spaces.Space, seed: int) -> None:
-        self.action_space = action_space
-        self.action_space.seed(seed)
-
-    def predict(self, observation: np.ndarray, state: Any = None, episode_start: Any = None, deterministic: bool = False):
-        """One random action per observation of the batch."""
-        return np.stack([self.action_space.sample() for _ in range(len(observation))]), None
 
 
 class ZeroAgent:
@@ -193,7 +178,7 @@ def run_job(job: Job) -> str:
     eval_env = make_vec_env(job.env, n_envs=1, seed=job.seed + EVAL_SEED_OFFSET)
     if job.agent in REFERENCES:
         start = time.perf_counter()
-        agent = RandomAgent(eval_env.action_space, job.seed) if job.agent == "random" else ZeroAgent(eval_env.action_space)
+        agent = RandomPolicy(eval_env.action_space, job.seed) if job.agent == "random" else ZeroAgent(eval_env.action_space)
         row = {"steps": 0, **evaluate(agent, eval_env, RANDOM_EPISODES)}
         record["evaluations"].append({**row, "eval_seconds": time.perf_counter() - start, "peak_rss_mib": peak_rss_mib()})
     else:
