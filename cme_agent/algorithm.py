@@ -350,30 +350,18 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         return self.store.get(slice(start, len(self.store)))
 
     def observation_box(self, new_data: Transitions) -> None:
-        """Fit the observation box on the first data, or expand it when the new data outgrew it
-        (:class:`~cme_agent.dynamics.box.ObservationBox`); after an expansion planning restarts,
-        the Q and value weights belonging to the old phi.
-
-        :param new_data: the transitions of this iteration
-        """
+        """:meth:`ObservationBox.update`; after an expansion planning restarts (Q and w belonged to the old phi)."""
         if self.box.update(self.dynamics, new_data, self.store, self.holdout, self.trainer, self._torch_rng, self.logger):
             self.policy.restart()
             self.evaluator.restart()
 
     def feature_selection(self, new_data: Transitions) -> int:
-        """Feature selection, eq. (5) (:meth:`FeatureSelector.select`): matching pursuit over
-        kernels centred at the m new state-actions; the picked atoms join psi and B.
-
-        :param new_data: the transitions collected in this iteration (the dictionary's centres)
-        :return: the number of features added
-        """
+        """Feature selection, eq. (5), at the new data's state-actions (:meth:`FeatureSelector.select`): features added."""
         with self._timed("feature_selection"):
             return self.selector.select(self.dynamics, new_data, self.store, self._torch_rng, self.logger)
 
     def model_update(self) -> None:
-        """Update the CME model B (:meth:`ModelTrainer.update`): with ``model_update.method="ridge"``
-        (the default) the exact minimiser of eq. (6)'s regularised loss on a fixed-size sample of
-        D; with ``"sgd"`` the paper's ``n_steps`` SGD steps of eq. (6), a diverging update undone."""
+        """The model update, eq. (6): B refit on a sample of D or SGD steps (:meth:`ModelTrainer.update`)."""
         with self._timed("model_update"):
             self.trainer.update(self.dynamics, self.store, self.holdout, self._torch_rng, self.logger, self.iteration)
 
@@ -383,12 +371,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             return self.evaluator.draw_collection(self.dynamics, self.store, self._torch_rng)
 
     def policy_evaluation(self, states: torch.Tensor) -> torch.Tensor:
-        """Policy evaluation, eq. (7) (:meth:`PolicyEvaluator.evaluate`): value weights w of the
-        current policy on C by Bellman residual minimisation.
-
-        :param states: (|C|, obs_dim) the collection C
-        :return: (p,) value weights w, V(s) = <w, phi(s)>
-        """
+        """Policy evaluation, eq. (7), on C (|C|, obs_dim) (:meth:`PolicyEvaluator.evaluate`): (p,) value weights w."""
         with self._timed("policy_evaluation"):
             return self.evaluator.evaluate(self.policy, states, self.logger)
 
