@@ -113,15 +113,20 @@ def write_markdown(stem: str, text: str) -> None:
     (RESULTS / f"{stem}.md").write_text(text)
 
 
+def write_csv(path: Path, rows: Sequence[dict[str, Any]]) -> None:
+    """``rows`` as a CSV whose columns are every key of any row, in order of first appearance."""
+    fields = list(dict.fromkeys(key for row in rows for key in row))
+    with open(path, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=fields)
+        writer.writeheader()
+        writer.writerows(rows)
+
+
 def write_report(stem: str, text: str, curves: list[list[dict[str, Any]]]) -> None:
     """Print ``text`` and write it to results/<stem>.md, the learning curves (one row per
     evaluation, all runs) to results/<stem>.csv."""
     write_markdown(stem, text)
-    with open(RESULTS / f"{stem}.csv", "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(curves[0][0]))
-        writer.writeheader()
-        for curve in curves:
-            writer.writerows(curve)
+    write_csv(RESULTS / f"{stem}.csv", [row for curve in curves for row in curve])
 
 
 def pyplot() -> Any:

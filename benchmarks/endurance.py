@@ -133,7 +133,9 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--overrides", nargs="*", default=[])
     parser.add_argument("--checkpoint-every", type=int, default=10, help="iterations between checkpoints")
-    parser.add_argument("--resume", action="store_true", help=f"continue the run checkpointed in {CHECKPOINT.name}")
+    parser.add_argument(
+        "--resume", action="store_true", help=f"continue the run checkpointed in {CHECKPOINT.name}, if there is one"
+    )
     parser.add_argument("--report-only", action="store_true", help="redraw from results/endurance.csv, train nothing")
     args = parser.parse_args()
     if args.report_only:
@@ -142,7 +144,9 @@ def main() -> None:
     torch.set_num_threads(1)
     cfg = compose_config([f"seed={args.seed}", "verbose=0", *args.overrides])
     env = make_env(cfg)
-    if args.resume:
+    if args.resume and not CHECKPOINT.exists():
+        print(f"--resume: no {CHECKPOINT}, starting a fresh run")
+    if args.resume and CHECKPOINT.exists():
         model = get_class(cfg.agent._target_).load(CHECKPOINT, env=env)
         rows = [row for row in read_rows() if row["iteration"] <= model.iteration]
         print(f"resuming from {CHECKPOINT} at iteration {model.iteration}, {model.num_timesteps} steps")

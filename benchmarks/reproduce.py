@@ -1,4 +1,4 @@
-"""Reproduce the paper's experiments, against the Kernel baseline and SB3, into results/ (issue 4).
+"""Reproduce the paper's experiments, against the Kernel baseline and SB3, into results/.
 
 One training run per (agent, env, seed), shared by every figure and table that needs it. Each
 run trains the Hydra config ``python train.py agent=<agent> env=<env> seed=<seed>`` would run
@@ -16,7 +16,9 @@ figures from the saved runs. Then it writes, into ``<out>``:
 - ``figure3.{png,md}``: Quadcopter-v0 return per iteration, the mean and each run, with the
   scripted controller's return as a line;
 - ``sample_efficiency.md``: env steps (and wall-clock) to reach each env's threshold, MP vs
-  Kernel vs the best SB3 algorithm.
+  Kernel vs the best SB3 algorithm;
+- beside each report, its CSV: every evaluation (figure 2: every iteration's seconds) of every
+  run it draws.
 
 MP's runs on Mountain Car keep the paper's SGD update (``PAPER_UPDATE``); every other run is the
 config ``train.py`` would run, its env's preset included.
@@ -53,6 +55,7 @@ from benchmarks.common import (
     pyplot,
     resident_bytes,
     save_record,
+    write_csv,
 )
 from benchmarks.learning_quality import TARGETS, episode_returns, train_with_evaluations
 from benchmarks.quadcopter_learning import controller_statistics, flight_statistics
@@ -298,6 +301,20 @@ def write_text(path: Path, text: str) -> None:
     path.write_text(text)
 
 
+def write_runs_csv(path: Path, runs: Sequence[dict[str, Any]], rows: str = "evaluations") -> None:
+    """Every row of every run's ``rows`` (``evaluations`` or ``iterations``) as one CSV, each
+    prefixed with its run's env, agent, seed, tag, env-step budget and commit."""
+    prefix = ("env", "agent", "seed", "tag")
+    write_csv(
+        path,
+        [
+            {key: run["run"][key] for key in prefix} | {"budget": run["run"]["steps"], "commit": run["commit"]} | row
+            for run in runs
+            for row in run[rows]
+        ],
+    )
+
+
 def figure1(profile: Profile, runs_dir: Path) -> None:
     """Return per iteration, MP vs Kernel, mean and SE over seeds, on FIGURE1_ENVS."""
     plt = pyplot()
@@ -343,6 +360,7 @@ def figure1(profile: Profile, runs_dir: Path) -> None:
         "agent=cme's steps per iteration, Kernel half as many.\n\n"
         f"{markdown_table(header, rows)}\n\n![figure 1](figure1.png)\n",
     )
+    write_runs_csv(profile.out / "figure1.csv", drawn)
 
 
 def figure2(profile: Profile, runs_dir: Path) -> None:
@@ -393,6 +411,7 @@ def figure2(profile: Profile, runs_dir: Path) -> None:
         "so medians). Acceptance of issue 4: MP's last iteration within 1.5x of iteration 5, Kernel's growing more than "
         "10x.\n\n" + "\n".join(lines) + "\n\n![figure 2](figure2.png)\n",
     )
+    write_runs_csv(profile.out / "figure2.csv", drawn, rows="iterations")
     plt = pyplot()
     if plt is None:
         return
@@ -473,6 +492,7 @@ def figure3(profile: Profile, runs_dir: Path) -> None:
         f"that of the others {distance_summary(others)}.\n\n"
         f"{markdown_table(header, rows)}\n\n![figure 3](figure3.png)\n",
     )
+    write_runs_csv(profile.out / "figure3.csv", runs)
     plt = pyplot()
     if plt is None:
         return
@@ -562,6 +582,7 @@ def sample_efficiency(profile: Profile, runs_dir: Path) -> None:
         "that reached the threshold on the most seeds, then in the fewest steps.\n\n"
         f"{markdown_table(header, best_rows)}\n\n## Every algorithm\n\n{markdown_table(header, all_rows)}\n",
     )
+    write_runs_csv(profile.out / "sample_efficiency.csv", drawn)
 
 
 PARTS = {"figure1": figure1, "figure2": figure2, "figure3": figure3, "table": sample_efficiency}

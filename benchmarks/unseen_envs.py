@@ -28,8 +28,9 @@ deterministic policy, on a separate env seeded ``seed + 10_000``. Each job write
 ``results/unseen_envs/runs/<agent>_<env>_<seed>.json`` after every evaluation (return, steps,
 wall-clock and thread CPU seconds of training, the process's peak RSS so far) and marks it
 complete at the end; complete runs are skipped, so the script can be stopped and run again
-(an incomplete run restarts from scratch). ``--report-only`` writes ``results/unseen_envs.md``
-and ``results/unseen_envs.png`` from the saved runs.
+(an incomplete run restarts from scratch). ``--report-only`` writes ``results/unseen_envs.md``,
+``results/unseen_envs.csv`` (every evaluation of every complete run) and ``results/unseen_envs.png``
+from the saved runs.
 
     python -m benchmarks.unseen_envs                       # the whole suite: 3 seeds, 20,000 steps
     python -m benchmarks.unseen_envs --seeds 0 --agents cme --envs InvertedPendulum-v5
@@ -58,7 +59,16 @@ from stable_baselines3.common.logger import configure
 from stable_baselines3.common.vec_env import VecEnv
 
 import cme_agent  # noqa: F401  (registers PointGoal2D-v0, in the spawned job processes too)
-from benchmarks.common import RESULTS, code_version, command_line, markdown_table, pyplot, resident_bytes, save_record
+from benchmarks.common import (
+    RESULTS,
+    code_version,
+    command_line,
+    markdown_table,
+    pyplot,
+    resident_bytes,
+    save_record,
+    write_csv,
+)
 from cme_agent.references import RandomPolicy
 
 CUSTOM_ENV = "PointGoal2D-v0"
@@ -556,6 +566,12 @@ def report(envs: list[str], steps: int, out: Path) -> None:
     )
     print(text)
     (out / "unseen_envs.md").write_text(text)
+    every = [run for runs_of in complete.values() for run in runs_of]
+    prefix = ("env", "agent", "seed")
+    write_csv(
+        out / "unseen_envs.csv",
+        [{k: run["job"][k] for k in prefix} | {"commit": run["commit"]} | row for run in every for row in run["evaluations"]],
+    )
     plot(complete, [env for env in envs if any(key[0] == env for key in complete)] or envs, out)
 
 

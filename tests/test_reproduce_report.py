@@ -3,6 +3,7 @@ steps to a threshold and the choice of the best SB3 algorithm, on synthetic save
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 import sys
@@ -82,6 +83,11 @@ def test_sample_efficiency_names_the_sb3_algorithm_that_reached_on_most_seeds(tm
     assert "| MP | 200 (2/2)" in best
     assert "Kernel" not in every  # no saved Kernel runs: no row rather than an empty one
     assert "| SAC | 100 (1/2)" in every
+    with open(tmp_path / "sample_efficiency.csv", newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert len(rows) == 12  # every evaluation of the 6 runs drawn, none of the quadcopter run
+    assert {(row["agent"], row["seed"], row["budget"], row["commit"]) for row in rows} >= {("td3", "1", "200", "test")}
+    assert [float(row["return_mean"]) for row in rows if row["agent"] == "sac" and row["seed"] == "1"] == [-900.0, -900.0]
 
 
 def test_full_plan_shares_runs_between_parts_and_has_no_duplicates() -> None:

@@ -3,6 +3,7 @@ the suite but kept out of the issue's targets, and the suite's rows are unchange
 
 from __future__ import annotations
 
+import csv
 from pathlib import Path
 
 from benchmarks import unseen_envs
@@ -46,6 +47,13 @@ def test_held_out_env_is_reported_but_not_a_target(tmp_path):
     targets = text.split("## Targets")[1].split("## Runs")[0]
     assert "Swimmer" not in targets
     assert "ahead of SAC at 2,000 steps on Reacher-v5: MISSED (CME -15.0 over 2 seeds, SAC -5.0 over 2)" in targets
+    with open(tmp_path / "unseen_envs.csv", newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert len(rows) == 12  # every evaluation of the 6 complete runs
+    assert {(row["env"], row["agent"], row["seed"], row["steps"], row["return_mean"]) for row in rows} >= {
+        ("Swimmer-v5", "cme", "1", "2000", "20.0"),
+        ("Reacher-v5", "sac", "0", "1000", "-6.0"),
+    }
 
 
 def test_held_out_env_without_runs_is_left_out(tmp_path):
