@@ -73,6 +73,8 @@ from cme_agent.references import RandomPolicy
 
 CUSTOM_ENV = "PointGoal2D-v0"
 ENVS = ("InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Reacher-v5", CUSTOM_ENV)
+REPORTED_ENVS = ("HalfCheetah-v5", "Hopper-v5")
+"""Envs of the suite reported without a target: larger bodies (17 and 11 observation dims, 6 and 3 action dims)."""
 HELD_OUT_ENVS = ("Swimmer-v5", "LunarLanderContinuous-v3")
 """Envs outside the suite, run on request only (``--envs``): the check of a default on an env that did not pick it."""
 AGENTS = ("cme", "cme_frozen", "sac", "random", "zero")
@@ -80,8 +82,10 @@ LEARNERS = ("cme", "cme_frozen", "sac")
 REFERENCES = ("random", "zero")
 SUITE_AGENTS = ("cme", "sac", "random", "zero")
 """The suite's agents; ``cme_frozen`` is an ablation run on request (``--agents cme_frozen``)."""
-TARGET_ENV, TARGET_RETURN, TARGET_STEPS = "InvertedPendulum-v5", 950.0, 5_000
-"""Issue 14: InvertedPendulum-v5 at or above 950 within 5,000 env steps."""
+TARGET_ENV, TARGET_RETURN, TARGET_STEPS, TARGET_SHARE = "InvertedPendulum-v5", 950.0, 5_000, 0.8
+"""InvertedPendulum-v5 at or above 950 within 5,000 env steps on 80% of the seeds."""
+AHEAD_STEPS = 10_000
+"""Env steps at which CME should be ahead of SAC on every env of ``ENVS``."""
 BUDGETS = (2_000, 5_000, 10_000)
 """Env-step budgets below the runs' last at which the report compares the learners (the last is always added)."""
 EVAL_EPISODES = 10
@@ -363,34 +367,39 @@ def partial_row(run: dict[str, Any]) -> list[Any]:
 
 
 def verdicts(complete: dict[tuple[str, str], list[dict[str, Any]]], steps: int) -> list[str]:
-    """The issue's targets, each said met, missed or not measured, with the numbers."""
+    """The targets, each said met, missed or not measured, with the numbers: InvertedPendulum-v5 at
+    950 within 5,000 steps on 8 seeds in 10, and on every env of ``ENVS`` CME ahead of SAC at
+    10,000 steps and within 10% of SAC's return at the end (``steps``)."""
     lines = []
     cme_target = complete.get((TARGET_ENV, "cme"), [])
     if cme_target:
         reached = [steps_to_target(run) for run in cme_target]
-        met = all(r is not None and r <= TARGET_STEPS for r in reached)
+        share = sum(r is not None and r <= TARGET_STEPS for r in reached) / len(reached)
         lines.append(
-            f"- {TARGET_ENV} >= {TARGET_RETURN:g} within {TARGET_STEPS:,} steps (CME): {'met' if met else 'MISSED'} "
-            f"(first evaluation at or above it, per seed: {', '.join(str(r or 'never') for r in reached)})"
+            f"- {TARGET_ENV} >= {TARGET_RETURN:g} within {TARGET_STEPS:,} steps on {TARGET_SHARE:.0%} of seeds (CME): "
+            f"{'met' if share >= TARGET_SHARE else 'MISSED'} ({share:.0%}; first evaluation at or above it, per seed: "
+            f"{', '.join(str(r or 'never') for r in reached)})"
         )
     else:
         lines.append(f"- {TARGET_ENV} >= {TARGET_RETURN:g} within {TARGET_STEPS:,} steps: not measured (no complete CME run)")
     for env in ENVS:
         cme, sac = complete.get((env, "cme"), []), complete.get((env, "sac"), [])
-        cme = [run for run in cme if run["evaluations"][-1]["steps"] >= steps]
-        sac = [run for run in sac if run["evaluations"][-1]["steps"] >= steps]
-        if not cme or not sac:
+        for budget, rule in ((AHEAD_STEPS, "ahead of SAC"), (steps, "within 10% of SAC's return")):
+            cme_returns = [r for r in (return_at(run, budget) for run in cme) if r is not None]
+            sac_returns = [r for r in (return_at(run, budget) for run in sac) if r is not None]
+            if not cme_returns or not sac_returns:
+                lines.append(
+                    f"- {rule} at {budget:,} steps on {env}: not measured "
+                    f"({len(cme_returns)} CME, {len(sac_returns)} SAC runs evaluated there)"
+                )
+                continue
+            cme_mean, sac_mean = statistics.mean(cme_returns), statistics.mean(sac_returns)
+            bar = sac_mean if rule == "ahead of SAC" else sac_mean - 0.1 * abs(sac_mean)
+            met = cme_mean > bar if rule == "ahead of SAC" else cme_mean >= bar
             lines.append(
-                f"- ahead of SAC at {steps:,} steps on {env}: not measured ({len(cme)} CME, {len(sac)} SAC runs complete)"
+                f"- {rule} at {budget:,} steps on {env}: {'met' if met else 'MISSED'} (CME {cme_mean:.1f} over "
+                f"{len(cme_returns)} seeds, SAC {sac_mean:.1f} over {len(sac_returns)}, bar {bar:.1f})"
             )
-            continue
-        cme_mean = statistics.mean(run["evaluations"][-1]["return_mean"] for run in cme)
-        sac_mean = statistics.mean(run["evaluations"][-1]["return_mean"] for run in sac)
-        verdict = "met" if cme_mean > sac_mean else "MISSED"
-        lines.append(
-            f"- ahead of SAC at {steps:,} steps on {env}: {verdict} (CME {cme_mean:.1f} over {len(cme)} seeds, "
-            f"SAC {sac_mean:.1f} over {len(sac)})"
-        )
     peaks = [run["peak_rss_mib"] for runs in complete.values() for run in runs if run["job"]["agent"] == "cme"]
     if peaks:
         verdict = "met" if max(peaks) <= 1024 else "MISSED"
@@ -578,7 +587,7 @@ def report(envs: list[str], steps: int, out: Path) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--agents", nargs="+", default=list(SUITE_AGENTS), choices=AGENTS)
-    parser.add_argument("--envs", nargs="+", default=list(ENVS), choices=ENVS + HELD_OUT_ENVS)
+    parser.add_argument("--envs", nargs="+", default=[*ENVS, *REPORTED_ENVS], choices=ENVS + REPORTED_ENVS + HELD_OUT_ENVS)
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--steps", type=int, default=20_000, help="env steps per run")
     parser.add_argument("--eval-every", type=int, default=1_000, help="env steps between evaluations")
@@ -588,7 +597,7 @@ def main() -> None:
     args = parser.parse_args()
     if not args.report_only:
         run_all(planned_jobs(args.agents, args.envs, args.seeds, args.steps, args.eval_every, args.out), args.workers)
-    report(list(ENVS), args.steps, args.out)
+    report([*ENVS, *REPORTED_ENVS], args.steps, args.out)
 
 
 if __name__ == "__main__":

@@ -179,6 +179,13 @@ class ModelUpdateConfig:
         which ``train/model_loss`` is measured
     :param holdout_size: held-out transitions sampled per iteration to measure the loss
     :param feature_dynamics: regress phi(s') - phi(s) (section 2.3) instead of phi(s')
+    :param metric_every: iterations between fits of psi's metric, one length scale per state
+        dim, on the held-out loss of the model (:class:`~cme_agent.dynamics.metric.MetricFitter`);
+        0: never, isotropic kernels on the normalised box (the paper's)
+    :param metric_steps: gradient steps of each fit
+    :param metric_lr: Adam's step on the log length scales
+    :param metric_sample: transitions of D the fit's model is fitted on (as many again held out)
+    :param metric_features: features of psi (a random subset) the fit's model uses
     """
 
     method: str = "ridge"
@@ -190,6 +197,11 @@ class ModelUpdateConfig:
     holdout_fraction: float = 0.1
     holdout_size: int = 1000
     feature_dynamics: bool = True
+    metric_every: int = 0
+    metric_steps: int = 30
+    metric_lr: float = 0.1
+    metric_sample: int = 2000
+    metric_features: int = 256
 
     def __post_init__(self) -> None:
         check_choice("model_update.method", self.method, MODEL_UPDATE_METHODS)
@@ -207,6 +219,16 @@ class ModelUpdateConfig:
         check_non_negative("model_update.l2", self.l2)
         check_unit_interval("model_update.holdout_fraction", self.holdout_fraction, open_high=True)
         check_positive_int("model_update.holdout_size", self.holdout_size)
+        check(
+            "model_update.metric_every",
+            self.metric_every,
+            isinstance(self.metric_every, int) and not isinstance(self.metric_every, bool) and self.metric_every >= 0,
+            "an integer >= 0",
+        )
+        check_positive_int("model_update.metric_steps", self.metric_steps)
+        check_positive("model_update.metric_lr", self.metric_lr)
+        check_positive_int("model_update.metric_sample", self.metric_sample)
+        check_positive_int("model_update.metric_features", self.metric_features)
 
 
 MIN_COLLECTION_SIZE = 2000
@@ -347,8 +369,13 @@ class StateFeatureConfig:
         defaults respect; explicit ``resolution`` or ``n_fourier`` may exceed it
     :param width: RBF width in grid spacings
     :param n_fourier: number of random Fourier features (None: ``max_width - 1``)
-    :param bandwidth: length scale of the random Fourier features, in normalised units
-        (None: ``max(0.3, 0.1 obs_dim)``, wide enough for high-dimensional observations)
+    :param bandwidth: length scale of the random Fourier features, in the units of ``metric``
+        (None: ``max(0.3, 0.1 obs_dim)`` box units, or ``0.4 sqrt(obs_dim)`` standard deviations)
+    :param metric: the coordinates the random Fourier features measure length in: ``"box"``
+        (the observation normalised by its box, as psi's kernels) or ``"data"`` (each dim
+        centred and divided by its standard deviation in the data, fitted on the first data and
+        refit when the observation box expands; a dim constant in the data is left out until
+        then). Grids are always on the box.
     """
 
     kind: str = "auto"
@@ -357,9 +384,11 @@ class StateFeatureConfig:
     width: float = 1.0
     n_fourier: int | None = None
     bandwidth: float | None = None
+    metric: str = "box"
 
     def __post_init__(self) -> None:
         check_choice("phi.kind", self.kind, ("auto", "rbf_grid", "fourier"))
+        check_choice("phi.metric", self.metric, ("box", "data"))
         if isinstance(self.resolution, int) and not isinstance(self.resolution, bool):
             object.__setattr__(self, "resolution", (self.resolution,))  # one value for all dims
         if self.resolution is not None:

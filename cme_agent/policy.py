@@ -29,6 +29,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import PyTorchObs
 from stable_baselines3.common.utils import is_vectorized_observation
 
+from cme_agent.action_search import projected_ascent
 from cme_agent.config import ActionSearchConfig, EvaluationConfig, ImprovementConfig, ObservationConfig, build_config
 from cme_agent.dynamics.cme import CMEDynamics, PhiSpec
 from cme_agent.kernel_bank import kernel_from_points, kernel_points, resize_buffers
@@ -321,7 +322,7 @@ class CMEPolicy(BasePolicy):
         (N, q) for psi or (N, m) for psi @ readout, the blocks, and two (block, q) scratch
         buffers reused by every block."""
         q = self.dynamics.q
-        points = kernel_points(self.dynamics.obs_encoder.normalize(obs))
+        points = kernel_points(self.dynamics.encode_states(obs))
         out = obs.new_empty(obs.shape[0], q if readout is None else readout.shape[1])
         blocks = _row_blocks(obs.shape[0], q)
         buffers = obs.new_empty(2, blocks[0].stop if blocks else 0, q).unbind(0)
@@ -340,21 +341,18 @@ class CMEPolicy(BasePolicy):
         return step.actions, step.values
 
     def _refine(self, obs: torch.Tensor, actions: torch.Tensor, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Projected normalised-gradient ascent on Q through psi, from the best candidate;
-        a refined action replaces the candidate only where it has a higher Q."""
+        """Projected ascent on Q through psi from the best candidate (:func:`projected_ascent`):
+        (N, obs_dim), (N, act_dim), (N,) -> the refined actions and their Q, never below the candidate's."""
         encoder = self.dynamics.action_encoder
-        encoded = encoder.encode(actions).detach().requires_grad_(True)
-        with torch.enable_grad():
-            for _ in range(self.action_search.refine_steps):
-                q = self.q_values(obs, encoder.decode(encoded))
-                (grad,) = torch.autograd.grad(q.sum(), encoded)
-                with torch.no_grad():
-                    encoded += self.action_search.refine_lr * grad / grad.norm(dim=1, keepdim=True).clamp_min(1e-12)
-                    encoded.clamp_(-1, 1)
-        refined = encoder.decode(encoded.detach())
-        refined_values = self.q_values(obs, refined)
+        search = self.action_search
+        encoded, refined_values = projected_ascent(
+            lambda points: self.q_values(obs, encoder.decode(points)),
+            encoder.encode(actions),
+            search.refine_steps,
+            search.refine_lr,
+        )
         better = refined_values > values
-        return torch.where(better.unsqueeze(1), refined, actions), torch.where(better, refined_values, values)
+        return torch.where(better.unsqueeze(1), encoder.decode(encoded), actions), torch.where(better, refined_values, values)
 
     def act(self, obs: torch.Tensor) -> torch.Tensor:
         """The greedy action, for acting: the best candidate (refined if configured), without

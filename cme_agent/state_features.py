@@ -36,6 +36,10 @@ FOURIER_BANDWIDTH_PER_DIM = 0.1
 """Default Fourier length scale per observation dim, in normalised units ..."""
 MIN_FOURIER_BANDWIDTH = 0.3
 """... and its floor: the default length scale is ``max(0.3, 0.1 obs_dim)``."""
+DATA_BANDWIDTH_PER_SQRT_DIM = 0.4
+"""Default Fourier length scale with ``phi.metric="data"``: ``0.4 sqrt(obs_dim)`` standard deviations."""
+CONSTANT_DIM = 1e-6
+"""A dim whose standard deviation in the data is at most this times max(1, |mean|) is constant."""
 WARN_WIDTH = 4000
 """A phi wider than this gets a warning with the memory the evaluation will take."""
 MAX_MEMORY_FRACTION = 0.5
@@ -50,6 +54,18 @@ class StateFeatureMap(nn.Module):
     fast_gram: ClassVar[bool] = False
     """Whether ``gram(obs, scale)`` gives ``Phi Phi^T`` cheaper than from Phi: policy evaluation
     may then solve eq. (7) on the factors of its residual map."""
+    follows_data: bool = False
+    """Whether phi's coordinates are fitted on observations (:meth:`fit`)."""
+
+    @property
+    def needs_fit(self) -> bool:
+        """Whether phi waits for its first :meth:`fit`."""
+        return False
+
+    def fit(self, obs: torch.Tensor) -> str:
+        """Fit phi's coordinates on observations (N, obs_dim), env units; the caller refits
+        whatever was learned on the old phi. :return: a line for the log."""
+        raise NotImplementedError(f"{type(self).__name__} has no coordinates to fit")
 
     def successor_targets(
         self, next_obs: torch.Tensor, continuation: torch.Tensor, obs: torch.Tensor | None = None
@@ -180,32 +196,61 @@ class RBFGrid(StateFeatureMap):
 
 
 class RandomFourierFeatures(StateFeatureMap):
-    """Random Fourier features of a Gaussian kernel on the normalised observation.
+    """Random Fourier features of a Gaussian kernel.
 
-    phi(s) = (sqrt(2 / D) cos(W z + b), 1) with z the normalised observation, W ~ N(0, 1/bw^2),
-    b ~ U[0, 2 pi). Output: (N, D + 1). (cos, sin) angle pairs make it periodic by construction.
+    phi(s) = (sqrt(2 / D) cos(W z + b), 1) with W ~ N(0, 1/bw^2), b ~ U[0, 2 pi), and z the
+    observation normalised by its box (``metric="box"``) or by the data's per-dim mean and
+    standard deviation (``metric="data"``, set by :meth:`fit`). Output: (N, D + 1). (cos, sin)
+    angle pairs make it periodic by construction.
 
     :param encoder: normalises observations
     :param n_fourier: D, the number of random features
-    :param bandwidth: kernel length scale in normalised units
+    :param bandwidth: kernel length scale, in box units or standard deviations
     :param seed: seed of the fixed random projection
+    :param metric: ``"box"`` or ``"data"``
     """
 
-    def __init__(self, encoder: ObservationEncoder, n_fourier: int, bandwidth: float, seed: int = 0) -> None:
+    def __init__(
+        self, encoder: ObservationEncoder, n_fourier: int, bandwidth: float, seed: int = 0, metric: str = "box"
+    ) -> None:
         super().__init__()
         self.encoder = encoder
+        self.follows_data = metric == "data"
         generator = torch.Generator().manual_seed(seed)
         self.register_buffer("projection", torch.randn(encoder.dim, n_fourier, generator=generator) / bandwidth)
         self.register_buffer("phase", torch.rand(n_fourier, generator=generator) * 2 * math.pi)
+        if self.follows_data:
+            self.register_buffer("mean", torch.zeros(encoder.dim))
+            self.register_buffer("inv_std", torch.ones(encoder.dim))
+            self.register_buffer("fitted", torch.tensor(False))
 
     @property
     def width(self) -> int:
         """p: the random features plus the constant."""
         return int(self.phase.numel()) + 1
 
+    @property
+    def needs_fit(self) -> bool:
+        """Whether the data metric waits for its first :meth:`fit`."""
+        return self.follows_data and not bool(self.fitted)
+
+    def fit(self, obs: torch.Tensor) -> str:
+        """Set the data metric: per dim, the mean and the inverse standard deviation of ``obs``
+        (N, obs_dim), 0 for a dim constant in it (left out of phi).
+
+        :return: a line for the log
+        """
+        mean, std = obs.mean(dim=0), obs.std(dim=0) if obs.shape[0] > 1 else torch.zeros_like(obs[0])
+        varies = std > CONSTANT_DIM * mean.abs().clamp_min(1)
+        self.mean.copy_(mean)
+        self.inv_std.copy_(torch.where(varies, 1 / std.clamp_min(1e-30), torch.zeros_like(std)))
+        self.fitted.fill_(True)
+        left_out = f"; dims {varies.logical_not().nonzero().flatten().tolist()} constant, left out" if not varies.all() else ""
+        return f"phi's metric fitted on {obs.shape[0]} observations (per-dim mean and standard deviation){left_out}"
+
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         """:param obs: (N, obs_dim) observations. :return: (N, p) features."""
-        z = self.encoder.normalize(obs)
+        z = (obs - self.mean) * self.inv_std if self.follows_data else self.encoder.normalize(obs)
         features = math.sqrt(2 / self.phase.numel()) * torch.cos(z @ self.projection + self.phase)
         return torch.cat([features, torch.ones_like(features[:, :1])], dim=1)
 
@@ -315,7 +360,8 @@ def make_state_features(
     finds a useful one within ``max_width``, else random Fourier features. Defaults:
     ``resolution`` from :func:`default_resolution` (for a grid without one, the budget is
     respected down to 2 points per dimension), ``n_fourier = max_width - 1``, ``bandwidth =
-    max(0.3, 0.1 obs_dim)``.
+    max(0.3, 0.1 obs_dim)`` box units or ``0.4 sqrt(obs_dim)`` standard deviations (``metric="data"``).
+    ``metric="data"`` with ``kind="rbf_grid"`` is refused: a grid lives on the box.
 
     :param phi: a :class:`StateFeatureConfig`, or a user map obs (N, obs_dim) -> (N, p0)
     :param encoder: the observation encoder
@@ -323,6 +369,8 @@ def make_state_features(
     :param device: where the evaluation will run, for the memory check (None: the CPU)
     :return: a module with a ``width`` attribute (p), obs (N, obs_dim) -> (N, p)
     """
+    if isinstance(phi, StateFeatureConfig) and phi.metric == "data" and phi.kind == "rbf_grid":
+        raise ValueError("phi.metric='data' is for Fourier features (phi.kind 'fourier' or 'auto'); a grid lives on the box")
     if not isinstance(phi, StateFeatureConfig):
         module: nn.Module = CustomStateFeatures(phi, encoder.dim)
         source = "the custom phi"
@@ -338,9 +386,12 @@ def make_state_features(
             source = f"phi.resolution={list(module.resolution)}"
         else:
             n_fourier = phi.max_width - 1 if phi.n_fourier is None else phi.n_fourier
-            bandwidth = max(MIN_FOURIER_BANDWIDTH, FOURIER_BANDWIDTH_PER_DIM * encoder.dim)
+            if phi.metric == "data":
+                bandwidth = DATA_BANDWIDTH_PER_SQRT_DIM * math.sqrt(encoder.dim)
+            else:
+                bandwidth = max(MIN_FOURIER_BANDWIDTH, FOURIER_BANDWIDTH_PER_DIM * encoder.dim)
             bandwidth = bandwidth if phi.bandwidth is None else phi.bandwidth
-            module = RandomFourierFeatures(encoder, n_fourier, bandwidth)
+            module = RandomFourierFeatures(encoder, n_fourier, bandwidth, metric=phi.metric)
             source = f"phi.n_fourier={n_fourier}"
     width = int(module.width)
     check_phi_memory(width, collection_size_for(width, evaluation or EvaluationConfig()), source, device)

@@ -46,7 +46,11 @@ def test_held_out_env_is_reported_but_not_a_target(tmp_path):
     assert len(rows) == 1 and "15.0 +- 7.1" in rows[0]
     targets = text.split("## Targets")[1].split("## Runs")[0]
     assert "Swimmer" not in targets
-    assert "ahead of SAC at 2,000 steps on Reacher-v5: MISSED (CME -15.0 over 2 seeds, SAC -5.0 over 2)" in targets
+    assert (
+        "within 10% of SAC's return at 2,000 steps on Reacher-v5: MISSED (CME -15.0 over 2 seeds, SAC -5.0 over 2, bar -5.5)"
+        in targets
+    )
+    assert "ahead of SAC at 10,000 steps on Reacher-v5: not measured (0 CME, 0 SAC runs evaluated there)" in targets
     with open(tmp_path / "unseen_envs.csv", newline="") as handle:
         rows = list(csv.DictReader(handle))
     assert len(rows) == 12  # every evaluation of the 6 complete runs
@@ -54,6 +58,19 @@ def test_held_out_env_is_reported_but_not_a_target(tmp_path):
         ("Swimmer-v5", "cme", "1", "2000", "20.0"),
         ("Reacher-v5", "sac", "0", "1000", "-6.0"),
     }
+
+
+def test_the_targets_are_ahead_at_10000_steps_within_10_percent_at_the_end_and_8_of_10_seeds(tmp_path):
+    for seed in range(10):
+        final = 1000.0 if seed < 8 else 500.0
+        _save_run(tmp_path, "cme", "InvertedPendulum-v5", seed, 0.0, {5_000: final, 10_000: 1000.0, 20_000: 960.0})
+    for seed in range(2):
+        _save_run(tmp_path, "sac", "InvertedPendulum-v5", seed, 0.0, {5_000: 100.0, 10_000: 900.0, 20_000: 1000.0})
+    unseen_envs.report(list(unseen_envs.ENVS), 20_000, tmp_path)
+    targets = (tmp_path / "unseen_envs.md").read_text().split("## Targets")[1].split("## Runs")[0]
+    assert "within 5,000 steps on 80% of seeds (CME): met (80%;" in targets
+    assert "ahead of SAC at 10,000 steps on InvertedPendulum-v5: met (CME 1000.0 over 10 seeds, SAC 900.0 over 2" in targets
+    assert "within 10% of SAC's return at 20,000 steps on InvertedPendulum-v5: met (CME 960.0" in targets
 
 
 def test_held_out_env_without_runs_is_left_out(tmp_path):

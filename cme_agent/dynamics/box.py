@@ -11,13 +11,14 @@ from cme_agent.dynamics.trainer import ModelTrainer
 
 
 class ObservationBox:
-    """Owns the estimated normalisation box (``policy_kwargs.observation``): it is fitted on the
-    data of the random phase; later, when more than ``expand_outside`` of an iteration's new
-    observations fall outside it in ``expand_after`` successive iterations, it is expanded to
-    cover those iterations' new observations (at most ``max_expansions`` times). psi's centres
-    keep their place and B is refit on the trainer's sample of D. The new observations, not all of D, set the expansion: the
-    quantiles of D would leave out a drift that is a small share of D, and the policy would meet
-    the box's edge again at once.
+    """Owns the estimated normalisation box (``policy_kwargs.observation``), and beside it phi's
+    data metric (``phi.metric="data"``): both are fitted on the data of the random phase. Later,
+    when more than ``expand_outside`` of an iteration's new observations fall outside the box in
+    ``expand_after`` successive iterations, it is expanded to cover those iterations' new
+    observations (at most ``max_expansions`` times): psi's centres keep their place, a data metric
+    is refit, and B is refit on the trainer's sample of D. The new observations, not all of D, set
+    the expansion: the quantiles of D would leave out a drift that is a small share of D, and the
+    policy would meet the box's edge again at once.
     """
 
     def __init__(self) -> None:
@@ -34,7 +35,8 @@ class ObservationBox:
         generator: torch.Generator,
         logger: Logger,
     ) -> bool:
-        """Fit the box on the first data, or expand it when the new data has outgrown it.
+        """Fit the box (and phi's data metric) on the first data, or expand it (and refit phi's
+        metric) when the new data has outgrown it.
 
         Logs the encoder's line and ``train/observation_box_expansions``.
 
@@ -48,8 +50,11 @@ class ObservationBox:
         :return: True when the box was expanded: the values planned in the old coordinates are void
         """
         encoder = dynamics.obs_encoder
-        if encoder.needs_fit:
-            logger.info(encoder.fit(observed_states(store, holdout)))
+        if encoder.needs_fit or dynamics.phi.needs_fit:
+            states = observed_states(store, holdout)
+            for coordinates in (encoder, dynamics.phi):
+                if coordinates.needs_fit:
+                    logger.info(coordinates.fit(states))
             return False
         config = encoder.config
         if not encoder.fit_dims or int(encoder.expansions) >= config.max_expansions or len(new_data) == 0:

@@ -107,6 +107,7 @@ class CMEDynamics(nn.Module):
         self.register_buffer(
             "action_scale", torch.tensor(1.0 if self.action_encoder.discrete else float(action_scale), dtype=torch.float64)
         )
+        self.register_buffer("state_metric", torch.ones(self.obs_encoder.dim))
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -127,7 +128,20 @@ class CMEDynamics(nn.Module):
     # ------------------------------------------------------------------ inputs and targets
     def encode(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """Normalised state-actions z = (z_s, z_a): (N, obs_dim), (N, ...) -> (N, obs_dim + action_dim)."""
-        return torch.cat([self.obs_encoder.normalize(obs), self.encode_actions(actions)], dim=1)
+        return torch.cat([self.encode_states(obs), self.encode_actions(actions)], dim=1)
+
+    def encode_states(self, obs: torch.Tensor) -> torch.Tensor:
+        """z_s, the state part of psi's input: the observation normalised by its box, times
+        ``state_metric`` (one inverse length scale per dim, 1 until :meth:`set_state_metric`):
+        (N, obs_dim) -> (N, obs_dim)."""
+        return self.obs_encoder.normalize(obs).mul_(self.state_metric)
+
+    def set_state_metric(self, metric: torch.Tensor) -> None:
+        """Change psi's per-dim inverse length scales on the states, keeping every kernel's centre
+        in place in env units (:meth:`KernelBank.move_states`); B, whose inputs changed, must be
+        refit by the caller. :param metric: (obs_dim,) positive factors."""
+        self.psi.move_states(metric / self.state_metric, torch.zeros_like(metric))
+        self.state_metric.copy_(metric)
 
     def encode_actions(self, actions: torch.Tensor) -> torch.Tensor:
         """z_a, the action part of psi's input: a Box action normalised to [-1, 1] times
@@ -140,7 +154,7 @@ class CMEDynamics(nn.Module):
 
     def state_factor(self, obs: torch.Tensor) -> torch.Tensor:
         """S (N, q), psi(s, a)[j] = S[s, j] * A[a, j]: :param obs: (N, obs_dim) observations."""
-        return self.psi.state_factor(self.obs_encoder.normalize(obs))
+        return self.psi.state_factor(self.encode_states(obs))
 
     def action_factor(self, actions: torch.Tensor) -> torch.Tensor:
         """A (K, q), the action factor of psi: :param actions: (K, ...) actions in env units."""
@@ -244,8 +258,9 @@ class CMEDynamics(nn.Module):
     def expand_observation_box(self, obs: torch.Tensor, batch: Transitions, l2: float) -> str:
         """Widen the estimated observation box to cover ``obs`` (:meth:`ObservationEncoder.expand`)
         and carry the model into the new coordinates: psi's centres keep their env-unit
-        positions (:meth:`KernelBank.move_states`), phi follows the box by construction, and B,
-        whose targets phi changed, is refit on ``batch`` (:meth:`refit_weights`).
+        positions (:meth:`KernelBank.move_states`), phi follows the box by construction (a data
+        metric is refit on ``obs`` and ``batch``'s states), and B, whose targets phi changed, is
+        refit on ``batch`` (:meth:`refit_weights`).
 
         :param obs: (N, obs_dim) observations the box must cover, env units
         :param batch: transitions B is refit on
@@ -255,7 +270,10 @@ class CMEDynamics(nn.Module):
         encoder = self.obs_encoder
         center, half_range = encoder.center.clone(), encoder.half_range.clone()
         message = encoder.expand(obs)
-        self.psi.move_states(half_range / encoder.half_range, (center - encoder.center) / encoder.half_range)
+        shift = (center - encoder.center) / encoder.half_range * self.state_metric
+        self.psi.move_states(half_range / encoder.half_range, shift)
+        if self.phi.follows_data:
+            message += "; " + self.phi.fit(torch.cat([obs, batch.obs, batch.next_obs]))
         if self.q > 0:
             self.refit_weights(batch, l2)
         return message
@@ -304,6 +322,8 @@ class CMEDynamics(nn.Module):
             state_dict[prefix + "reward_offset"] = torch.zeros_like(self.reward_offset)
         if prefix + "action_scale" not in state_dict:  # saved before the scale: the action entered psi unscaled
             state_dict[prefix + "action_scale"] = torch.ones_like(self.action_scale)
+        if prefix + "state_metric" not in state_dict:  # saved before the learned metric: isotropic kernels
+            state_dict[prefix + "state_metric"] = torch.ones_like(self.state_metric)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     # ------------------------------------------------------------------ what planning reads
