@@ -8,10 +8,15 @@ were made at which commit, with their commands, outputs and seconds. A release r
 commit, best a worktree of its own, so that the rest of the work can go on beside it::
 
     git worktree add .worktrees/release HEAD
-    cd .worktrees/release && python -m benchmarks.release --workers 1   # many CPU-hours; rerun to continue
+    cd .worktrees/release && python -m benchmarks.release --workers 2   # many CPU-hours; rerun to continue
     python -m benchmarks.release --list                                 # the steps and their commands
+    python -m benchmarks.release --export ../..                         # copy what is made into the branch
 
-Then copy the files of results/ (every step's outputs and ``release.md``) into the branch.
+``--export DIR`` copies into ``DIR/results/`` the outputs of the steps made and ``release.md``; while
+steps are left it also packs the release in progress (its state, the outputs made, every run record
+and checkpoint under ``results/``) into ``results/release-progress.tar.gz`` beside them, so that the release can
+go on in another checkout of the branch (a fresh machine): make the worktree at the release's
+commit, copy that archive into its ``results/`` and run the release again, which unpacks it.
 """
 
 from __future__ import annotations
@@ -19,16 +24,21 @@ from __future__ import annotations
 import argparse
 import json
 import shlex
+import shutil
 import subprocess
 import sys
+import tarfile
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 from benchmarks.common import RESULTS, ROOT, code_version, markdown_table, save_record
 
 STATE = RESULTS / "release" / "state.json"
 """The steps made so far and their seconds (scratch, as every folder of results/ is)."""
 REPORT = RESULTS / "release.md"
+PROGRESS = RESULTS / "release-progress.tar.gz"
+"""A release in progress, packed by ``--export`` to go on in another checkout (unpacked on start)."""
 
 
 @dataclass(frozen=True)
@@ -117,6 +127,42 @@ def load_state(commit: str) -> dict[str, float]:
     return dict(state["steps"])
 
 
+def scratch(results: Path) -> list[Path]:
+    """The untracked records of results/ a release continues from: every folder and the endurance checkpoint."""
+    return sorted(path for path in results.iterdir() if path.is_dir() or path.name == "endurance_checkpoint.zip")
+
+
+def unpack_progress() -> None:
+    """Continue a release packed in another checkout: unpack ``PROGRESS`` unless a state is already here."""
+    if STATE.exists() or not PROGRESS.exists():
+        return
+    with tarfile.open(PROGRESS) as archive:
+        archive.extractall(RESULTS, filter="data")
+    print(f"continuing the release packed in {PROGRESS}", flush=True)
+
+
+def export(plan: list[Step], destination: Path, commit: str) -> None:
+    """Copy the outputs of the steps made at ``commit`` and ``release.md`` into ``destination/results``,
+    with the release packed in ``release-progress.tar.gz`` while steps are left (removed there once none are)."""
+    done = load_state(commit)
+    target = destination / "results"
+    if not target.is_dir() or target.resolve() == RESULTS.resolve():
+        raise SystemExit(f"--export needs another checkout's folder holding results/, not {destination}")
+    made = [output for step in plan if step.name in done for output in step.outputs] + [REPORT.name]
+    for name in made:
+        shutil.copy2(RESULTS / name, target / name)
+    if all(step.name in done for step in plan):
+        (target / PROGRESS.name).unlink(missing_ok=True)
+        print(f"release at {commit} exported to {target}: complete")
+        return
+    with tarfile.open(target / PROGRESS.name, "w:gz") as archive:
+        for path in [*scratch(RESULTS), *(RESULTS / name for name in made)]:
+            archive.add(path, arcname=path.name)
+    print(
+        f"release at {commit} exported to {target}, {len(done)} of {len(plan)} steps made, the rest packed in {PROGRESS.name}"
+    )
+
+
 def write_report(plan: list[Step], commit: str, done: dict[str, float]) -> None:
     """results/release.md: each step made at ``commit``, its commands, outputs and hours."""
     rows = [
@@ -137,6 +183,7 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=1, help="runs at a time inside a step (one process each)")
     parser.add_argument("--only", nargs="+", help="the steps to make (default: all)")
     parser.add_argument("--list", action="store_true", help="print the steps, their commands and outputs, run nothing")
+    parser.add_argument("--export", type=Path, metavar="DIR", help="copy what is made (and the progress) into DIR/results")
     args = parser.parse_args()
     plan = steps(args.workers)
     names = [step.name for step in plan]
@@ -151,6 +198,10 @@ def main() -> None:
     commit = code_version()
     if commit.endswith("+changes") or commit == "unknown":
         raise SystemExit(f"the code is at {commit}: a release runs from a clean checkout of one commit")
+    if args.export:
+        export(plan, args.export, commit)
+        return
+    unpack_progress()
     done = load_state(commit)
     for step in selected:
         if step.name in done:

@@ -19,6 +19,7 @@ def results(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     monkeypatch.setattr(release, "RESULTS", tmp_path)
     monkeypatch.setattr(release, "STATE", tmp_path / "release" / "state.json")
     monkeypatch.setattr(release, "REPORT", tmp_path / "release.md")
+    monkeypatch.setattr(release, "PROGRESS", tmp_path / "release-progress.tar.gz")
     monkeypatch.setattr(release, "code_version", lambda: "abc1234")
     return tmp_path
 
@@ -83,6 +84,56 @@ def test_a_dirty_checkout_and_another_commits_record_are_refused(results: Path, 
     monkeypatch.setattr(release, "code_version", lambda: "abc1234+changes")
     with pytest.raises(SystemExit, match="clean checkout"):
         run_main(monkeypatch)
+
+
+def test_an_exported_release_goes_on_in_another_checkout(results: Path, tmp_path_factory, monkeypatch) -> None:
+    records = results / "bench" / "runs"
+    plan = [
+        release.Step("first", (writing(results / "a.md"),), ("a.md",)),
+        release.Step(
+            "second",
+            (
+                shlex.join(["python", "-c", f"import os; os.makedirs({str(records)!r})"]),
+                writing(records / "seed0.json", "record"),
+                "python -c 'raise SystemExit(3)'",
+            ),
+            ("b.md",),
+        ),
+    ]
+    monkeypatch.setattr(release, "steps", lambda workers: plan)
+    with pytest.raises(Exception, match="3"):  # interrupted inside the second step, one of its records made
+        run_main(monkeypatch)
+    branch = tmp_path_factory.mktemp("branch")
+    with pytest.raises(SystemExit, match="another checkout"):
+        run_main(monkeypatch, "--export", str(branch))  # no results/ there
+    (branch / "results").mkdir()
+    run_main(monkeypatch, "--export", str(branch))
+    assert (branch / "results" / "a.md").read_text() == "made"
+    assert "Steps not made yet: second" in (branch / "results" / "release.md").read_text()
+    assert not (branch / "results" / "b.md").exists()
+
+    fresh = tmp_path_factory.mktemp("fresh")  # another checkout at the same commit, the archive copied in
+    monkeypatch.setattr(release, "RESULTS", fresh)
+    monkeypatch.setattr(release, "STATE", fresh / "release" / "state.json")
+    monkeypatch.setattr(release, "REPORT", fresh / "release.md")
+    monkeypatch.setattr(release, "PROGRESS", fresh / "release-progress.tar.gz")
+    (fresh / "release-progress.tar.gz").write_bytes((branch / "results" / "release-progress.tar.gz").read_bytes())
+    carried = fresh / "bench" / "runs" / "seed0.json"
+    plan[:] = [
+        release.Step("first", ("python -c 'raise SystemExit(4)'",), ("a.md",)),  # made already: not run again
+        release.Step(
+            "second",
+            (shlex.join(["python", "-c", f"assert open({str(carried)!r}).read() == 'record'"]), writing(fresh / "b.md")),
+            ("b.md",),
+        ),
+    ]
+    run_main(monkeypatch)
+    assert (fresh / "b.md").read_text() == "made"
+    (branch / "results" / "a.md").write_text("stale")  # the branch gets every output again, the first's as made
+    run_main(monkeypatch, "--export", str(branch))
+    assert (branch / "results" / "b.md").read_text() == "made"
+    assert (branch / "results" / "a.md").read_text() == "made"
+    assert not (branch / "results" / "release-progress.tar.gz").exists()  # complete: nothing left to carry
 
 
 def test_unknown_step_names_are_refused(monkeypatch: pytest.MonkeyPatch) -> None:
