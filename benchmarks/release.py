@@ -13,8 +13,8 @@ commit, best a worktree of its own, so that the rest of the work can go on besid
     python -m benchmarks.release --export ../..                         # copy what is made into the branch
 
 ``--export DIR`` copies into ``DIR/results/`` the outputs of the steps made and ``release.md``; while
-steps are left it also packs the release in progress (its state, the outputs made, every run record
-and checkpoint under ``results/``) into ``results/release-progress.tar.gz`` beside them, so that the release can
+steps are left it also packs the release in progress (its state, the outputs made, the run records
+and checkpoints of the steps left) into ``results/release-progress.tar.gz`` beside them, so that the release can
 go on in another checkout of the branch (a fresh machine): make the worktree at the release's
 commit, copy that archive into its ``results/`` and run the release again, which unpacks it.
 """
@@ -48,11 +48,14 @@ class Step:
     :param name: what ``--only`` calls it
     :param commands: command lines, run in order from the repository root (``python`` is this interpreter)
     :param outputs: the files it writes under results/
+    :param records: its per-run records and checkpoints under results/ (scratch), from which an
+        interrupted step continues: what an export packs while the step is not made
     """
 
     name: str
     commands: tuple[str, ...]
     outputs: tuple[str, ...]
+    records: tuple[str, ...] = ()
 
 
 def steps(workers: int) -> list[Step]:
@@ -72,11 +75,13 @@ def steps(workers: int) -> list[Step]:
             "interrupt_resume",
             (f"python -m benchmarks.interrupt_resume --seeds 0 1 2 3 4 --overrides total_timesteps=3000 {jobs}",),
             ("interrupt_resume.md", "interrupt_resume.csv"),
+            ("interrupt_resume_runs",),
         ),
         Step(
             "learning_quality",
             (f"python -m benchmarks.learning_quality {jobs}",),
             ("learning_quality.md", "learning_quality.csv", "learning_quality.png"),
+            ("learning_quality",),
         ),
         Step(
             "ip_defaults",
@@ -85,11 +90,13 @@ def steps(workers: int) -> list[Step]:
                 f"--seeds {ten_seeds} --stem ip_defaults {jobs}",
             ),
             ("ip_defaults.md", "ip_defaults.csv", "ip_defaults.png"),
+            ("ip_defaults",),
         ),
         Step(
             "paper",
             (f"python -m benchmarks.reproduce {jobs}",),
             (*figures, "sample_efficiency.md", "sample_efficiency.csv"),
+            ("runs",),
         ),
         Step(
             "quadcopter_gifs",
@@ -100,16 +107,19 @@ def steps(workers: int) -> list[Step]:
                 "python -m benchmarks.quadcopter_gif --output results/quadcopter_scripted.gif",
             ),
             ("quadcopter_cme.gif", "quadcopter_scripted.gif"),
+            ("quadcopter_seed0",),
         ),
         Step(
             "unseen_envs",
             (f"python -m benchmarks.unseen_envs --seeds 0 1 2 3 4 {jobs}",),
             ("unseen_envs.md", "unseen_envs.csv", "unseen_envs.png"),
+            ("unseen_envs",),
         ),
         Step(
             "endurance",
             ("python -m benchmarks.endurance --steps 200000 --resume",),
             ("endurance.md", "endurance.csv", "endurance.png"),
+            ("endurance_checkpoint.zip",),
         ),
     ]
 
@@ -125,11 +135,6 @@ def load_state(commit: str) -> dict[str, float]:
             "a fresh worktree (git worktree add .worktrees/release-<commit> <commit>)"
         )
     return dict(state["steps"])
-
-
-def scratch(results: Path) -> list[Path]:
-    """The untracked records of results/ a release continues from: every folder and the endurance checkpoint."""
-    return sorted(path for path in results.iterdir() if path.is_dir() or path.name == "endurance_checkpoint.zip")
 
 
 def unpack_progress() -> None:
@@ -156,8 +161,10 @@ def export(plan: list[Step], destination: Path, commit: str) -> None:
         print(f"release at {commit} exported to {target}: complete")
         return
     with tarfile.open(target / PROGRESS.name, "w:gz") as archive:
-        for path in [*scratch(RESULTS), *(RESULTS / name for name in made)]:
-            archive.add(path, arcname=path.name)
+        left = [name for step in plan if step.name not in done for name in step.records]
+        for name in [STATE.parent.name, *left, *made]:
+            if (RESULTS / name).exists():
+                archive.add(RESULTS / name, arcname=name)
     print(
         f"release at {commit} exported to {target}, {len(done)} of {len(plan)} steps made, the rest packed in {PROGRESS.name}"
     )

@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib.util
 import shlex
 import sys
+import tarfile
 from pathlib import Path
 
 import pytest
@@ -43,7 +44,7 @@ def test_every_step_runs_a_module_or_script_of_the_repository() -> None:
                 assert importlib.util.find_spec(words[2]) is not None, command
             else:
                 assert (ROOT / words[1]).is_file(), command
-        assert step.outputs and all("/" not in name for name in step.outputs)
+        assert step.outputs and all("/" not in name for name in (*step.outputs, *step.records))
     names = [step.name for step in release.steps(workers=1)]
     assert len(names) == len(set(names))
 
@@ -89,7 +90,7 @@ def test_a_dirty_checkout_and_another_commits_record_are_refused(results: Path, 
 def test_an_exported_release_goes_on_in_another_checkout(results: Path, tmp_path_factory, monkeypatch) -> None:
     records = results / "bench" / "runs"
     plan = [
-        release.Step("first", (writing(results / "a.md"),), ("a.md",)),
+        release.Step("first", (writing(results / "a.md"), writing(results / "first.json")), ("a.md",), ("first.json",)),
         release.Step(
             "second",
             (
@@ -98,6 +99,7 @@ def test_an_exported_release_goes_on_in_another_checkout(results: Path, tmp_path
                 "python -c 'raise SystemExit(3)'",
             ),
             ("b.md",),
+            ("bench",),
         ),
     ]
     monkeypatch.setattr(release, "steps", lambda workers: plan)
@@ -119,6 +121,8 @@ def test_an_exported_release_goes_on_in_another_checkout(results: Path, tmp_path
     monkeypatch.setattr(release, "PROGRESS", fresh / "release-progress.tar.gz")
     (fresh / "release-progress.tar.gz").write_bytes((branch / "results" / "release-progress.tar.gz").read_bytes())
     carried = fresh / "bench" / "runs" / "seed0.json"
+    with tarfile.open(fresh / "release-progress.tar.gz") as archive:
+        assert "first.json" not in archive.getnames()  # a made step's records stay behind
     plan[:] = [
         release.Step("first", ("python -c 'raise SystemExit(4)'",), ("a.md",)),  # made already: not run again
         release.Step(
