@@ -17,6 +17,7 @@ the policy is pi(a|s) = softmax_a(beta_k Qbar_k(s, a)) over the candidates (:met
 
 from __future__ import annotations
 
+import functools
 import itertools
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -257,23 +258,25 @@ class CMEPolicy(BasePolicy):
         dynamics, n, q_used = self.dynamics, obs.shape[0], self.theta_psi.shape[0]
         phi, points, out, blocks, (state_buffer, scratch) = self._blocked_inputs(obs, readout)
         state_weights, factor, weighted = dynamics.psi.state_weights(), self.candidate_factor(), self.weighted_candidates()
-        base = self._candidate_step_rewards(obs) + (phi @ self.theta_phi).unsqueeze(1)
+        state_only = phi @ self.theta_phi
+        base = self._candidate_step_rewards(obs) + state_only.unsqueeze(1)
         values, best = base.new_empty(n), torch.empty(n, dtype=torch.long, device=obs.device)
+        refine = not dynamics.action_encoder.discrete and self.action_search.refine_steps > 0
+        refined = []
         for rows in blocks:
             length = rows.stop - rows.start
             state = kernel_from_points(points[rows], state_weights, out=state_buffer[:length])
             torch.max(torch.addmm(base[rows], state[:, :q_used], weighted.T), dim=1, out=(values[rows], best[rows]))
-            gathered = torch.index_select(factor, 0, best[rows], out=scratch[:length])
-            destination = gathered if readout is not None else out[rows]
-            _write_block(torch.mul(state, gathered, out=destination), readout, out, rows)
-        actions = self.candidates[best]
-        if not dynamics.action_encoder.discrete and self.action_search.refine_steps > 0:
-            actions, values = self._refine(obs, actions, values)
-            refined_factor = dynamics.action_factor(actions)
-            for rows in blocks:
-                state = kernel_from_points(points[rows], state_weights, out=state_buffer[: rows.stop - rows.start])
-                destination = state if readout is not None else out[rows]
-                _write_block(torch.mul(state, refined_factor[rows], out=destination), readout, out, rows)
+            if refine:
+                start = self.candidates[best[rows]]
+                block_actions, values[rows] = self._refine(obs[rows], state[:, :q_used], start, values[rows], state_only[rows])
+                refined.append(block_actions)
+                chosen_factor = dynamics.action_factor(block_actions)
+            else:
+                chosen_factor = torch.index_select(factor, 0, best[rows], out=scratch[:length])
+            destination = chosen_factor if readout is not None else out[rows]
+            _write_block(torch.mul(state, chosen_factor, out=destination), readout, out, rows)
+        actions = torch.cat(refined) if refined else self.candidates[best]
         return GreedyStep(actions, values, phi, out)
 
     def soft_step(self, obs: torch.Tensor, readout: torch.Tensor | None = None) -> SoftStep:
@@ -340,19 +343,39 @@ class CMEPolicy(BasePolicy):
         step = self.greedy_step(obs)
         return step.actions, step.values
 
-    def _refine(self, obs: torch.Tensor, actions: torch.Tensor, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Projected ascent on Q through psi from the best candidate (:func:`projected_ascent`):
-        (N, obs_dim), (N, act_dim), (N,) -> the refined actions and their Q, never below the candidate's."""
-        encoder = self.dynamics.action_encoder
-        search = self.action_search
-        encoded, refined_values = projected_ascent(
-            lambda points: self.q_values(obs, encoder.decode(points)),
-            encoder.encode(actions),
-            search.refine_steps,
-            search.refine_lr,
-        )
+    def _refine(
+        self, obs: torch.Tensor, state: torch.Tensor, actions: torch.Tensor, values: torch.Tensor, state_only: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Projected ascent on Q(s, .) from the best candidate (:func:`projected_ascent`); a step
+        recomputes only Q's terms in a, on the state factor S already built.
+
+        :param obs: (N, obs_dim) observations
+        :param state: (N, len(theta_psi)) their state factor S
+        :param actions: (N, act_dim) the best candidates, in env units
+        :param values: (N,) their Q
+        :param state_only: (N,) Q's term without the action, <theta_phi, phi(s)>
+        :return: the refined actions (N, act_dim) and their Q (N,), never below the candidate's
+        """
+        encoder, search = self.dynamics.action_encoder, self.action_search
+        q = functools.partial(self._q_in_action, obs, state, state_only)
+        encoded, refined_values = projected_ascent(q, encoder.encode(actions), search.refine_steps, search.refine_lr)
         better = refined_values > values
         return torch.where(better.unsqueeze(1), encoder.decode(encoded), actions), torch.where(better, refined_values, values)
+
+    def _q_in_action(
+        self, obs: torch.Tensor, state: torch.Tensor, state_only: torch.Tensor, encoded: torch.Tensor
+    ) -> torch.Tensor:
+        """Q at normalised actions, differentiable in them: r(s, a) + <theta_psi, S(s) * A(a)> + <theta_phi, phi(s)>.
+
+        :param obs: (N, obs_dim) observations
+        :param state: (N, len(theta_psi)) their state factor S
+        :param state_only: (N,) <theta_phi, phi(s)>
+        :param encoded: (N, act_dim) actions in [-1, 1]^act_dim
+        :return: (N,)
+        """
+        actions = self.dynamics.action_encoder.decode(encoded)
+        factor = self.dynamics.action_factor(actions)[:, : state.shape[1]]
+        return self.dynamics.reward.step_reward(obs, actions) + (state * factor) @ self.theta_psi + state_only
 
     def act(self, obs: torch.Tensor) -> torch.Tensor:
         """The greedy action, for acting: the best candidate (refined if configured), without

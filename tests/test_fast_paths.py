@@ -215,5 +215,6 @@ def test_refined_greedy_step_reads_psi_at_the_refined_actions(trained, monkeypat
     step = policy.greedy_step(states)
     assert not torch.isin(step.actions, policy.candidates).all()  # some actions moved off the candidate grid
     assert torch.allclose(step.psi, policy.dynamics.features(states, step.actions), atol=1e-6)
+    assert torch.allclose(step.values, policy.q_values(states, step.actions), atol=1e-4)  # refined block by block
     readout = policy.dynamics.readout()
     assert torch.allclose(policy.greedy_step(states, readout).psi, step.psi @ readout, atol=1e-4)
