@@ -13,10 +13,9 @@ did not choose it. They are reported beside the suite, not in the issue's target
 
 One job is (agent, env, seed), run in a fresh process (so its peak memory is its own):
 
-- ``cme``: ``CMEPolicyIteration("CMEPolicy", env_id, seed=seed)``, nothing else;
-- ``cme_frozen`` (an ablation, only with ``--agents cme_frozen``): the same with the observation
-  box frozen after the random phase, ``policy_kwargs={"observation": {"max_expansions": 0}}``
-  (the behaviour before the box expanded);
+- ``cme``: ``CMEPolicyIteration("CMEPolicy", env_id, seed=seed)``, nothing else; with ``--kwargs``
+  (JSON) ``CMEPolicyIteration("CMEPolicy", env_id, seed=seed, **kwargs)``, a setting measured on the
+  suite against the defaults (give it its own ``--stem``);
 - ``sac``: ``SAC("MlpPolicy", env_id, seed=seed)``, SB3's defaults (learning_starts=100,
   buffer_size=1e6, batch_size=256, train_freq=1, ...), on the CPU;
 - ``random``: uniform random actions, evaluated once on 100 episodes (a reference line);
@@ -25,15 +24,17 @@ One job is (agent, env, seed), run in a fresh process (so its peak memory is its
 
 Every ``--eval-every`` env steps the learning agents are evaluated on 10 episodes of the
 deterministic policy, on a separate env seeded ``seed + 10_000``. Each job writes its curve to
-``results/unseen_envs/runs/<agent>_<env>_<seed>.json`` after every evaluation (return, steps,
-wall-clock and thread CPU seconds of training, the process's peak RSS so far) and marks it
-complete at the end; complete runs are skipped, so the script can be stopped and run again
-(an incomplete run restarts from scratch). ``--report-only`` writes ``results/unseen_envs.md``,
-``results/unseen_envs.csv`` (every evaluation of every complete run) and ``results/unseen_envs.png``
-from the saved runs.
+``results/<stem>/runs/<agent>_<env>_<seed>.json`` (stem ``unseen_envs`` by default) after every
+evaluation (return, steps, wall-clock and thread CPU seconds of training, the process's peak RSS so
+far) and marks it complete at the end; complete runs (of the same steps and kwargs) are skipped, so
+the script can be stopped and run again (an incomplete run restarts from scratch).
+``--report-only`` writes ``results/<stem>.md``, ``results/<stem>.csv`` (every evaluation of every
+complete run) and ``results/<stem>.png`` from the saved runs.
 
     python -m benchmarks.unseen_envs                       # the whole suite: 3 seeds, 20,000 steps
     python -m benchmarks.unseen_envs --seeds 0 --agents cme --envs InvertedPendulum-v5
+    python -m benchmarks.unseen_envs --agents cme --stem unseen_envs_frozen_box \
+        --kwargs '{"policy_kwargs": {"observation": {"max_expansions": 0}}}'
     python -m benchmarks.unseen_envs --report-only
 """
 
@@ -77,11 +78,11 @@ REPORTED_ENVS = ("HalfCheetah-v5", "Hopper-v5")
 """Envs of the suite reported without a target: larger bodies (17 and 11 observation dims, 6 and 3 action dims)."""
 HELD_OUT_ENVS = ("Swimmer-v5", "LunarLanderContinuous-v3")
 """Envs outside the suite, run on request only (``--envs``): the check of a default on an env that did not pick it."""
-AGENTS = ("cme", "cme_frozen", "sac", "random", "zero")
-LEARNERS = ("cme", "cme_frozen", "sac")
+AGENTS = ("cme", "sac", "random", "zero")
+LEARNERS = ("cme", "sac")
 REFERENCES = ("random", "zero")
-SUITE_AGENTS = ("cme", "sac", "random", "zero")
-"""The suite's agents; ``cme_frozen`` is an ablation run on request (``--agents cme_frozen``)."""
+STEM = "unseen_envs"
+"""The default name of the report files and of the runs' folder in the results folder."""
 TARGET_ENV, TARGET_RETURN, TARGET_STEPS, TARGET_SHARE = "InvertedPendulum-v5", 950.0, 5_000, 0.8
 """InvertedPendulum-v5 at or above 950 within 5,000 env steps on 80% of the seeds."""
 AHEAD_STEPS = 10_000
@@ -98,8 +99,10 @@ MIB = 2**20
 class Job:
     """One run: ``agent`` on ``env`` with ``seed`` for ``steps`` env steps, evaluated every ``eval_every``.
 
-    :param out: the results folder; the record goes to ``<out>/unseen_envs/runs/``
+    :param out: the results folder; the record goes to ``<out>/<stem>/runs/``
     :param command: the command and commit that started it (for the report)
+    :param kwargs: constructor arguments of CME beyond the env and the seed, as JSON
+    :param stem: the name of the runs' folder and of the report
     """
 
     agent: str
@@ -109,15 +112,17 @@ class Job:
     eval_every: int
     out: str = str(RESULTS)
     command: str = ""
+    kwargs: str = "{}"
+    stem: str = STEM
 
     @property
     def path(self) -> Path:
-        return runs_dir(Path(self.out)) / f"{self.agent}_{self.env}_{self.seed}.json"
+        return runs_dir(Path(self.out), self.stem) / f"{self.agent}_{self.env}_{self.seed}.json"
 
 
-def runs_dir(out: Path) -> Path:
-    """Where the job records of a results folder go."""
-    return out / "unseen_envs" / "runs"
+def runs_dir(out: Path, stem: str = STEM) -> Path:
+    """Where the job records of a report ``stem`` in a results folder go."""
+    return out / stem / "runs"
 
 
 class ZeroAgent:
@@ -134,18 +139,18 @@ class ZeroAgent:
         return np.repeat(self.action[None], len(observation), axis=0), None
 
 
-def make_learner(agent: str, env_id: str, seed: int) -> Any:
-    """The agent at library defaults: CME with nothing but the env and the seed; SAC at SB3's defaults.
+def make_learner(agent: str, env_id: str, seed: int, kwargs: dict[str, Any]) -> Any:
+    """The agent at library defaults: CME with nothing but the env, the seed and ``kwargs``; SAC at SB3's defaults.
 
     :param agent: ``cme`` or ``sac``
     :param env_id: the Gymnasium id
     :param seed: the seed of the agent (and of its training env)
+    :param kwargs: CME's further constructor arguments (empty: the defaults)
     """
-    if agent in ("cme", "cme_frozen"):
+    if agent == "cme":
         from cme_agent import CMEPolicyIteration
 
-        frozen = {"policy_kwargs": {"observation": {"max_expansions": 0}}} if agent == "cme_frozen" else {}
-        model = CMEPolicyIteration("CMEPolicy", env_id, seed=seed, **frozen)
+        model = CMEPolicyIteration("CMEPolicy", env_id, seed=seed, **kwargs)
     elif agent == "sac":
         from stable_baselines3 import SAC
 
@@ -196,7 +201,7 @@ def run_job(job: Job) -> str:
         row = {"steps": 0, **evaluate(agent, eval_env, RANDOM_EPISODES)}
         record["evaluations"].append({**row, "eval_seconds": time.perf_counter() - start, "peak_rss_mib": peak_rss_mib()})
     else:
-        model = make_learner(job.agent, job.env, job.seed)
+        model = make_learner(job.agent, job.env, job.seed, json.loads(job.kwargs))
         train_wall = train_cpu = eval_wall = 0.0
         while model.num_timesteps < job.steps:
             wall, cpu = time.perf_counter(), time.thread_time()
@@ -216,7 +221,7 @@ def run_job(job: Job) -> str:
             record["evaluations"].append(row)
             save_record(job.path, record)
             print(f"{job.agent} {job.env} seed {job.seed} steps {row['steps']}: {row['return_mean']:.1f}", flush=True)
-        if job.agent.startswith("cme"):
+        if job.agent == "cme":
             record["box_expansions"] = int(model.dynamics.obs_encoder.expansions)
             record["phi_width"] = int(model.dynamics.p)
             record["reward_source"] = model.reward_source
@@ -243,20 +248,37 @@ def load_record(path: Path) -> dict[str, Any] | None:
     return json.loads(path.read_text()) if path.exists() else None
 
 
-def planned_jobs(agents: list[str], envs: list[str], seeds: list[int], steps: int, eval_every: int, out: Path) -> list[Job]:
+def planned_jobs(
+    agents: list[str],
+    envs: list[str],
+    seeds: list[int],
+    steps: int,
+    eval_every: int,
+    out: Path,
+    kwargs: str = "{}",
+    stem: str = STEM,
+) -> list[Job]:
     """The jobs in the order they run: the random and zero references first (seconds each), then
-    seed by seed CME on every env, then SAC on every env."""
+    seed by seed CME on every env, then SAC on every env. ``kwargs`` (JSON) goes to CME only."""
     command = command_line()
     order = [(agent, seed) for seed in seeds for agent in REFERENCES] + [(agent, seed) for seed in seeds for agent in LEARNERS]
     return [
-        Job(agent, env, seed, steps, eval_every, str(out), command) for agent, seed in order if agent in agents for env in envs
+        Job(agent, env, seed, steps, eval_every, str(out), command, kwargs if agent == "cme" else "{}", stem)
+        for agent, seed in order
+        if agent in agents
+        for env in envs
     ]
 
 
 def is_done(job: Job) -> bool:
-    """Whether the job's record is complete, for the same number of steps."""
+    """Whether the job's record is complete, for the same number of steps and the same kwargs."""
     record = load_record(job.path)
-    return record is not None and record["complete"] and record["job"]["steps"] == job.steps
+    return (
+        record is not None
+        and record["complete"]
+        and record["job"]["steps"] == job.steps
+        and json.loads(record["job"].get("kwargs", "{}")) == json.loads(job.kwargs)
+    )
 
 
 def run_all(jobs: list[Job], workers: int) -> None:
@@ -271,9 +293,9 @@ def run_all(jobs: list[Job], workers: int) -> None:
 
 
 # ---------------------------------------------------------------------- report
-def saved_runs(out: Path) -> list[dict[str, Any]]:
-    """Every saved record (complete or not) of a results folder."""
-    return [json.loads(path.read_text()) for path in sorted(runs_dir(out).glob("*.json"))]
+def saved_runs(out: Path, stem: str = STEM) -> list[dict[str, Any]]:
+    """Every saved record (complete or not) of the report ``stem`` in a results folder."""
+    return [json.loads(path.read_text()) for path in sorted(runs_dir(out, stem).glob("*.json"))]
 
 
 def _mean_std(values: list[float]) -> str:
@@ -342,7 +364,7 @@ def summary_row(env: str, agent: str, runs: list[dict[str, Any]], random: float 
         f"{statistics.mean(row['train_cpu_seconds'] for row in last):.0f}",
         f"{peak:.0f}",
         f"eval {statistics.mean(row['eval_seconds'] for row in last):.0f} s/run"
-        + (f"; p = {runs[0]['phi_width']}, q = {last[0]['n_features']}" if agent.startswith("cme") else ""),
+        + (f"; p = {runs[0]['phi_width']}, q = {last[0]['n_features']}" if agent == "cme" else ""),
     ]
 
 
@@ -445,13 +467,13 @@ def by_budget(complete: dict[tuple[str, str], list[dict[str, Any]]], envs: list[
     return [markdown_table(header, rows), "", *ahead] if rows else ["No complete run of a learning agent."]
 
 
-def plot(complete: dict[tuple[str, str], list[dict[str, Any]]], envs: list[str], out: Path) -> None:
-    """results/unseen_envs.png: a panel per env of ``envs``, each seed thin, the mean thick, random dashed, zero dash-dot."""
+def plot(complete: dict[tuple[str, str], list[dict[str, Any]]], envs: list[str], path: Path) -> None:
+    """results/<stem>.png: a panel per env of ``envs``, each seed thin, the mean thick, random dashed, zero dash-dot."""
     plt = pyplot()
     if plt is None:
         return
     fig, axes = plt.subplots(1, len(envs), figsize=(4.5 * len(envs), 3.8), squeeze=False)
-    colours = {"cme": "tab:blue", "cme_frozen": "tab:grey", "sac": "tab:orange"}
+    colours = {"cme": "tab:blue", "sac": "tab:orange"}
     for ax, env in zip(axes[0], envs, strict=True):
         for agent, colour in colours.items():
             runs = complete.get((env, agent), [])
@@ -482,15 +504,23 @@ def plot(complete: dict[tuple[str, str], list[dict[str, Any]]], envs: list[str],
             ax.legend(fontsize=7)
     fig.suptitle(command_line().replace("`", ""), fontsize=7)
     fig.tight_layout()
-    fig.savefig(out / "unseen_envs.png", dpi=100)
+    fig.savefig(path, dpi=100)
 
 
-def report(envs: list[str], steps: int, out: Path) -> None:
-    """Write <out>/unseen_envs.md (and .png) from the saved runs, saying which are complete.
+def describe_cme(kwargs: list[str]) -> str:
+    """How the report's CME runs were built, from their kwargs (JSON texts)."""
+    if kwargs == ["{}"]:
+        return '`CMEPolicyIteration("CMEPolicy", env_id, seed=seed)` with nothing else'
+    calls = [f'`CMEPolicyIteration("CMEPolicy", env_id, seed=seed, **{text})`' for text in kwargs]
+    return " or ".join(calls) + (" (runs of different kwargs mixed in one report)" if len(calls) > 1 else "")
+
+
+def report(envs: list[str], steps: int, out: Path, stem: str = STEM) -> None:
+    """Write <out>/<stem>.md (and .csv, .png) from the saved runs, saying which are complete.
 
     :param envs: the suite's envs; a held-out env is added after them where it has a saved run
     """
-    runs = saved_runs(out)
+    runs = saved_runs(out, stem)
     envs = envs + [env for env in HELD_OUT_ENVS if any(run["job"]["env"] == env for run in runs)]
     complete: dict[tuple[str, str], list[dict[str, Any]]] = {}
     for run in runs:
@@ -525,20 +555,21 @@ def report(envs: list[str], steps: int, out: Path) -> None:
         for run in runs
         if not run["complete"]
     ]
-    planned = [Job(agent, env, seed, steps, 0, str(out)) for seed in (0, 1, 2) for agent in SUITE_AGENTS for env in envs]
+    planned = [Job(agent, env, seed, steps, 0, str(out), stem=stem) for seed in (0, 1, 2) for agent in AGENTS for env in envs]
     missing = [f"{job.agent} {job.env} seed {job.seed}" for job in planned if load_record(job.path) is None]
     done = ", ".join(
         f"{agent} {env} seeds {sorted(run['job']['seed'] for run in group)}"
         for (env, agent), group in sorted(complete.items())
     )
     commands = sorted({f"`{run['job']['command']}` (runs at commit `{run['commit']}`)" for run in runs})
+    cme_kwargs = sorted({run["job"].get("kwargs", "{}") for run in runs if run["job"]["agent"] == "cme"}) or ["{}"]
     text = "\n".join(
         [
-            "# Unseen envs at library defaults: CME vs SB3 SAC vs random",
+            f"# Unseen envs{' at library defaults' if cme_kwargs == ['{}'] else ''}: CME vs SB3 SAC vs random",
             "",
             f"Report: `{command_line()}`. Runs made by: {'; '.join(commands) or 'none'}.",
             "",
-            'CME is `CMEPolicyIteration("CMEPolicy", env_id, seed=seed)` with nothing else (no env here has a preset); '
+            f"CME is {describe_cme(cme_kwargs)} (no env here has a preset); "
             'SAC is `SAC("MlpPolicy", env_id, seed=seed)` at SB3\'s defaults (learning_starts=100, buffer 1e6, batch 256, '
             "one gradient step per env step) on the CPU; random takes uniform actions, zero the action space's centre "
             "at every step (doing nothing). Final return = the last "
@@ -574,30 +605,41 @@ def report(envs: list[str], steps: int, out: Path) -> None:
         ]
     )
     print(text)
-    (out / "unseen_envs.md").write_text(text)
+    (out / f"{stem}.md").write_text(text)
     every = [run for runs_of in complete.values() for run in runs_of]
     prefix = ("env", "agent", "seed")
     write_csv(
-        out / "unseen_envs.csv",
+        out / f"{stem}.csv",
         [{k: run["job"][k] for k in prefix} | {"commit": run["commit"]} | row for run in every for row in run["evaluations"]],
     )
-    plot(complete, [env for env in envs if any(key[0] == env for key in complete)] or envs, out)
+    plot(complete, [env for env in envs if any(key[0] == env for key in complete)] or envs, out / f"{stem}.png")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--agents", nargs="+", default=list(SUITE_AGENTS), choices=AGENTS)
+    parser.add_argument("--agents", nargs="+", default=list(AGENTS), choices=AGENTS)
     parser.add_argument("--envs", nargs="+", default=[*ENVS, *REPORTED_ENVS], choices=ENVS + REPORTED_ENVS + HELD_OUT_ENVS)
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--steps", type=int, default=20_000, help="env steps per run")
     parser.add_argument("--eval-every", type=int, default=1_000, help="env steps between evaluations")
     parser.add_argument("--workers", type=int, default=1, help="jobs at a time (each a process with one torch thread)")
     parser.add_argument("--out", type=Path, default=RESULTS, help="results folder (default results/)")
+    parser.add_argument("--kwargs", default="{}", help="CME's constructor arguments beyond the env and the seed, as JSON")
+    parser.add_argument("--stem", default=STEM, help="name of the report (results/<stem>.md) and of its runs' folder")
     parser.add_argument("--report-only", action="store_true", help="only write the report from the saved runs")
     args = parser.parse_args()
+    try:
+        kwargs = json.loads(args.kwargs)
+    except json.JSONDecodeError as error:
+        parser.error(f"--kwargs is not JSON: {error}")
+    if not isinstance(kwargs, dict):
+        parser.error(f"--kwargs must be a JSON object of constructor arguments, got {args.kwargs!r}")
+    if kwargs and args.stem == STEM:
+        parser.error(f"--kwargs changes CME from the defaults: give the runs a --stem other than {STEM!r}")
     if not args.report_only:
-        run_all(planned_jobs(args.agents, args.envs, args.seeds, args.steps, args.eval_every, args.out), args.workers)
-    report([*ENVS, *REPORTED_ENVS], args.steps, args.out)
+        jobs = planned_jobs(args.agents, args.envs, args.seeds, args.steps, args.eval_every, args.out, args.kwargs, args.stem)
+        run_all(jobs, args.workers)
+    report([*ENVS, *REPORTED_ENVS], args.steps, args.out, args.stem)
 
 
 if __name__ == "__main__":

@@ -4,16 +4,31 @@ the suite but kept out of the issue's targets, and the suite's rows are unchange
 from __future__ import annotations
 
 import csv
+import dataclasses
+import sys
 from pathlib import Path
+
+import pytest
 
 from benchmarks import unseen_envs
 from benchmarks.common import save_record
 
 
-def _save_run(out: Path, agent: str, env: str, seed: int, final: float, curve: dict[int, float] | None = None) -> None:
+def _save_run(
+    out: Path,
+    agent: str,
+    env: str,
+    seed: int,
+    final: float,
+    curve: dict[int, float] | None = None,
+    kwargs: str = "{}",
+    stem: str = unseen_envs.STEM,
+) -> unseen_envs.Job:
     """A complete run of 2,000 steps ending at ``final``, or of the last step of ``curve`` (steps -> return)."""
     curve = curve or {1_000: final - 1.0, 2_000: final}
-    job = unseen_envs.Job(agent, env, seed, steps=max(curve), eval_every=1_000, out=str(out), command="test")
+    job = unseen_envs.Job(
+        agent, env, seed, steps=max(curve), eval_every=1_000, out=str(out), command="test", kwargs=kwargs, stem=stem
+    )
     evaluations = [
         {
             "steps": steps,
@@ -32,6 +47,7 @@ def _save_run(out: Path, agent: str, env: str, seed: int, final: float, curve: d
     if agent == "cme":
         record.update(box_expansions=0, phi_width=1_000, reward_source="learned")
     save_record(job.path, record)
+    return job
 
 
 def test_held_out_env_is_reported_but_not_a_target(tmp_path):
@@ -92,3 +108,37 @@ def test_the_budget_table_says_where_cme_leads_and_where_it_falls_behind(tmp_pat
     assert "| InvertedPendulum-v5 | cme | 50.0 +- 0.0 | 400.5 +- 0.7 | 700.0 +- 0.0 | 700.0 +- 0.0 |" in section
     assert "| InvertedPendulum-v5 | sac | 100.0 +- 0.0 | 100.0 +- 0.0 | 140.0 +- 0.0 | 1000.0 +- 0.0 |" in section
     assert "- InvertedPendulum-v5: CME's mean above SAC's at 5,000, 10,000 env steps" in section
+
+
+def test_a_setting_is_measured_under_its_own_stem_and_its_runs_are_not_taken_for_the_defaults(tmp_path):
+    setting = '{"policy_kwargs": {"action_search": {"refine_steps": 10}}}'
+    _save_run(tmp_path, "cme", "Reacher-v5", 0, -10.0)
+    job = _save_run(tmp_path, "cme", "Reacher-v5", 0, -8.0, kwargs=setting, stem="unseen_envs_refine")
+    assert job.path == tmp_path / "unseen_envs_refine" / "runs" / "cme_Reacher-v5_0.json"
+    assert unseen_envs.is_done(job)
+    assert not unseen_envs.is_done(dataclasses.replace(job, kwargs="{}"))  # other kwargs: run again
+    unseen_envs.report(list(unseen_envs.ENVS), 2_000, tmp_path, "unseen_envs_refine")
+    text = (tmp_path / "unseen_envs_refine.md").read_text()
+    assert text.startswith("# Unseen envs: CME vs SB3 SAC vs random")
+    assert f'`CMEPolicyIteration("CMEPolicy", env_id, seed=seed, **{setting})`' in text
+    assert "| Reacher-v5 | cme | 0 | 2000 | -8.0 +- 0.0 |" in text
+    assert (tmp_path / "unseen_envs_refine.csv").exists() and not (tmp_path / "unseen_envs.md").exists()
+    unseen_envs.report(list(unseen_envs.ENVS), 2_000, tmp_path)
+    defaults = (tmp_path / "unseen_envs.md").read_text()
+    assert "at library defaults" in defaults and "| Reacher-v5 | cme | 0 | 2000 | -10.0 +- 0.0 |" in defaults
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["--kwargs", "{gamma: 0.9}"], "--kwargs is not JSON"),
+        (["--kwargs", "[0.9]", "--stem", "probe"], "--kwargs must be a JSON object"),
+        (["--kwargs", '{"gamma": 0.9}'], "give the runs a --stem other than 'unseen_envs'"),
+    ],
+)
+def test_bad_kwargs_are_refused_before_anything_runs(monkeypatch, capsys, tmp_path, arguments, message):
+    monkeypatch.setattr(sys, "argv", ["unseen_envs", "--out", str(tmp_path), *arguments])
+    with pytest.raises(SystemExit):
+        unseen_envs.main()
+    assert message in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
