@@ -1,5 +1,5 @@
 """Peak memory and time of ``CMEPolicyIteration("CMEPolicy", env_id).learn(steps)`` with no
-settings at all (issue 14: at most 1 GiB at the defaults), as a new user runs it: torch's default
+settings at all (the budget: at most 1 GiB at the defaults), as a new user runs it: torch's default
 thread count, a fresh process per run (peak RSS of the whole process: torch, SB3 and the env
 included), repeated because the peak varies from run to run with the allocator's heap.
 Writes results/defaults_memory.md.

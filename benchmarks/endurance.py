@@ -1,4 +1,4 @@
-"""Endurance: a long Pendulum-v1 run, recording memory and seconds per iteration (issue 5).
+"""Endurance: a long Pendulum-v1 run, recording memory and seconds per iteration.
 
 Trains ``python train.py``'s default config for ``--steps`` env steps and records, at every
 iteration: the process's resident memory, the bytes held by the transition stores, q, and the

@@ -1,4 +1,4 @@
-"""Is a run interrupted mid-way and resumed the same as an uninterrupted one? (issue 16)
+"""Is a run interrupted mid-way and resumed the same as an uninterrupted one?
 
 For each seed, ``python train.py seed=S <overrides>`` runs twice: once through, and once sent
 SIGINT when its progress.csv reaches ``--interrupt-at`` steps (it finishes that iteration,

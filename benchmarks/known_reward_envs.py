@@ -1,4 +1,4 @@
-"""Two suite envs under new ids whose exact reward the agent is given: a diagnostic (issue 14).
+"""Two suite envs under new ids whose exact reward the agent is given: a diagnostic.
 
 The suite's envs (benchmarks/unseen_envs.py) make the agent learn its reward, and on
 InvertedPendulum-v5 its termination too. Under these ids the same envs come with their exact

@@ -1,4 +1,4 @@
-"""learn() and predict() against an earlier commit, A/B in one run (issue 13's speed targets).
+"""learn() and predict() against an earlier commit, A/B in one run.
 
 Three workloads, each run by both versions of the code in subprocesses (1 torch thread, timed
 in thread CPU seconds, the two versions alternating):

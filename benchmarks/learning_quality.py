@@ -4,7 +4,7 @@ Each run trains with the Hydra config of its env (exactly what ``python train.py
 runs: the library's defaults and the env's preset, cme_agent/presets/<env id>.yaml) and pauses every
 1,000 env steps for an evaluation: 10 episodes of the deterministic policy from fixed random
 starts (the same at every evaluation of a seed, seeded apart from training,
-:func:`cme_agent.experiment.make_eval_env`). Per env the report gives (issue 15): how many seeds
+:func:`cme_agent.experiment.make_eval_env`). Per env the report gives: how many seeds
 reached the target and the median env steps to it, the final return (the last policy, not
 the best one seen) as mean +- std over seeds, the worst seed's final return, and the worst
 evaluation after the target was first reached (a collapse). Writes results/<stem>.md,

@@ -1,4 +1,4 @@
-"""CMEPolicyIteration on Quadcopter-v0 against the scripted controller (issue 3, paper Figure 3).
+"""CMEPolicyIteration on Quadcopter-v0 against the scripted controller (the paper's Figure 3).
 
 Trains ``python train.py env=quadcopter``'s config for several seeds, evaluating every
 ``--eval-every`` steps: 10 episodes of the deterministic policy (random starts), return and

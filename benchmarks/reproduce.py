@@ -408,7 +408,7 @@ def figure2(profile: Profile, runs_dir: Path) -> None:
         profile.out / "figure2.md",
         f"# Figure 2: model-learning time per iteration\n\n{provenance(runs_dir, drawn)}\n\n"
         "Model-learning time = feature selection + model update (wall-clock, one torch thread; the machine is shared, "
-        "so medians). Acceptance of issue 4: MP's last iteration within 1.5x of iteration 5, Kernel's growing more than "
+        "so medians). The target: MP's last iteration within 1.5x of iteration 5, Kernel's growing more than "
         "10x.\n\n" + "\n".join(lines) + "\n\n![figure 2](figure2.png)\n",
     )
     write_runs_csv(profile.out / "figure2.csv", drawn, rows="iterations")

@@ -1,4 +1,4 @@
-"""Envs the library was never tuned on, with library defaults: CME vs SB3 SAC vs random (issue 14).
+"""Envs the library was never tuned on, with library defaults: CME vs SB3 SAC vs random.
 
 The suite: InvertedPendulum-v5, InvertedDoublePendulum-v5 and Reacher-v5 (MuJoCo, extra
 ``mujoco``: ``pip install -e ".[mujoco]"``), whose observation bounds are infinite, and
@@ -9,7 +9,7 @@ learns the reward). No env has a preset.
 Held-out envs, run only when named in ``--envs``: ``Swimmer-v5`` (MuJoCo, 2-D action, 1,000-step
 episodes) and ``LunarLanderContinuous-v3`` (Box2D, extra ``box2d``; 2-D action: main and lateral
 engines), kept out of the suite so that a default chosen on the suite can be checked on envs that
-did not choose it. They are reported beside the suite, not in the issue's targets.
+did not choose it. They are reported beside the suite, not in the suite's targets.
 
 One job is (agent, env, seed), run in a fresh process (so its peak memory is its own):
 
@@ -589,7 +589,7 @@ def report(envs: list[str], steps: int, out: Path, stem: str = STEM) -> None:
             "",
             *by_budget(complete, envs, steps),
             "",
-            "## Targets (issue 14)",
+            "## Targets",
             "",
             *verdicts(complete, steps),
             "",

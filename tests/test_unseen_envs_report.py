@@ -1,5 +1,5 @@
 """benchmarks/unseen_envs.py's report (no training): a held-out env's saved runs are reported beside
-the suite but kept out of the issue's targets, and the suite's rows are unchanged by them."""
+the suite but kept out of the suite's targets, and the suite's rows are unchanged by them."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """How well the observation box estimated from the random phase covers the data that follows
-(issue 14: normalisation without given bounds).
+(normalisation without given bounds).
 
 For each env, ``CMEPolicyIteration("CMEPolicy", env_id, seed=seed)`` (library defaults) learns
 for ``--steps`` env steps, twice: with the box frozen after the random phase

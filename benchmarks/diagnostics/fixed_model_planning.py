@@ -1,4 +1,4 @@
-"""Does planning on a fixed model converge? Issue 15's swings with the model held still.
+"""Does planning on a fixed model converge? The learning curves' swings with the model held still.
 
 Each run trains the Hydra config of its env (as ``python train.py env=<name>``, the env's
 budget unless ``--steps``), then freezes everything but the planner: no new data, no feature

@@ -593,8 +593,9 @@ def obs_decoding_errors(
 
 
 def trained_agent(env_id: str, seed: int, steps: int, kwargs: dict[str, Any], path: Path) -> tuple[CMEPolicyIteration, float]:
-    """The agent trained for ``steps`` env steps: loaded from ``path`` if an earlier run saved it,
-    else trained and saved there. :return: the agent and the seconds of training (0 if loaded)."""
+    """The agent trained for ``steps`` env steps, with its transitions: loaded from ``path`` if an
+    earlier run saved it, else trained and saved there. :return: the agent and the seconds of
+    training (0 if loaded)."""
     if path.exists():
         agent = CMEPolicyIteration.load(path)
         if agent.num_timesteps < steps:
@@ -602,7 +603,7 @@ def trained_agent(env_id: str, seed: int, steps: int, kwargs: dict[str, Any], pa
         return agent, 0.0
     start = time.perf_counter()
     agent = CMEPolicyIteration("CMEPolicy", env_id, seed=seed, **kwargs).learn(steps)
-    agent.save(path)
+    agent.save(path, include=["replay_buffer"])
     return agent, time.perf_counter() - start
 
 
@@ -742,17 +743,29 @@ class Job:
         return RESULTS / self.stem / f"{self.env_id}_seed{self.seed}"
 
 
-def run_seed(job: Job) -> dict[str, Any]:
-    """Train (or load) one agent and measure it, or read the record of an earlier run: its row."""
+def recorded_row(job: Any, measure_agent: Callable[[CMEPolicyIteration], dict[str, Any]]) -> dict[str, Any]:
+    """One seed's row: read from the record of an earlier run (``job.path`` .json), else the agent
+    trained (or loaded, :func:`trained_agent`) and measured by ``measure_agent``, then recorded.
+
+    :param job: a frozen dataclass with ``env_id``, ``seed``, ``steps``, ``kwargs`` and ``path``
+    :param measure_agent: the trained agent -> its measurements
+    :return: the seed, the measurements, and the seconds of training and measuring
+    """
     torch.set_num_threads(1)
     record = job.path.with_suffix(".json")
     if record.exists():
         return json.loads(record.read_text())["row"]
     agent, train_seconds = trained_agent(job.env_id, job.seed, job.steps, job.kwargs, job.path.with_suffix(".zip"))
     start = time.perf_counter()
-    row = {"seed": job.seed, **measure(agent, job)}
+    row = {"seed": job.seed, **measure_agent(agent)}
     row["train_s"], row["measure_s"] = round(train_seconds), round(time.perf_counter() - start)
     save_record(record, {"command": command_line(), "job": vars(job), "row": row})
+    return row
+
+
+def run_seed(job: Job) -> dict[str, Any]:
+    """Train (or load) one agent and measure it, or read the record of an earlier run: its row."""
+    row = recorded_row(job, lambda agent: measure(agent, job))
     print(job.env_id, job.seed, {key: round(float(row[key]), 3) for key in (*RETURN_METRICS, *VALUE_METRICS)}, flush=True)
     return row
 

@@ -1,6 +1,6 @@
-"""The optimal return of Pendulum-v1 on each seed's evaluation starts, and the agent's gap to it (issue 15).
+"""The optimal return of Pendulum-v1 on each seed's evaluation starts, and the agent's gap to it.
 
-Issue 15's protocol evaluates every seed on 10 fixed random starts of its own
+The learning-quality protocol evaluates every seed on 10 fixed random starts of its own
 (:func:`cme_agent.experiment.make_eval_env`), so a seed's return depends on how hard its starts
 are as much as on its policy. This script solves Pendulum-v1 by finite-horizon dynamic programming
 on a fine (angle, angular velocity) grid with the simulator's own dynamics and the agent's

@@ -1,4 +1,4 @@
-"""The learned reward's error along a run on PointGoal2D-v0 (a diagnostic, issue 14).
+"""The learned reward's error along a run on PointGoal2D-v0 (a diagnostic).
 
 PointGoal2D-v0 (``cme_agent/envs/point_goal.py``) is the unseen-env suite's env whose reward comes
 only from the env, so the agent learns it as B's reward row; its true expected reward is known
