@@ -81,3 +81,9 @@ def test_the_trained_agent_is_saved_with_its_transitions(tmp_path) -> None:
     torch.testing.assert_close(
         loaded.store.get(slice(0, len(loaded.store))).obs, trained.store.get(slice(0, len(trained.store))).obs
     )
+
+
+def test_measure_refuses_an_agent_without_its_transitions() -> None:
+    untrained = CMEPolicyIteration("CMEPolicy", "InvertedDoublePendulum-v5", seed=0)
+    with pytest.raises(SystemExit, match="without its transitions"):
+        vr.measure(untrained, "InvertedDoublePendulum-v5", 200, seed=0)

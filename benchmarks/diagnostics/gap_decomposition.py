@@ -99,7 +99,7 @@ from benchmarks.common import (
     seed_table,
     write_markdown,
 )
-from benchmarks.diagnostics.true_dynamics_planning import phi_of, r_squared
+from benchmarks.diagnostics.true_dynamics_planning import phi_of, r_squared, rollout_horizon
 from benchmarks.unseen_envs import EVAL_EPISODES, EVAL_SEED_OFFSET
 from cme_agent import CMEPolicyIteration
 from cme_agent.planning import bellman_residual_weights
@@ -613,7 +613,7 @@ def measure(agent: CMEPolicyIteration, job: Job) -> dict[str, Any]:
     env_id, seed, n_states, n_exact = job.env_id, job.seed, job.states, job.exact_states
     dynamics, gamma, l2 = agent.dynamics, agent.gamma, agent.evaluation_config.l2
     sim, rng = gym.make(env_id).unwrapped, np.random.default_rng(seed)
-    horizon = math.ceil(math.log(1e-3) / math.log(gamma))
+    horizon = rollout_horizon(gamma)
     row: dict[str, Any] = {"q": dynamics.q, "p": dynamics.p, "horizon": horizon}
 
     # C and pi's true transitions on it

@@ -82,6 +82,11 @@ class Lookahead:
         return self.candidates[scores.argmax(axis=1)].astype(np.float32), None
 
 
+def rollout_horizon(gamma: float) -> int:
+    """H, the length of a Monte-Carlo rollout: the least with gamma^H < 1e-3."""
+    return math.ceil(math.log(1e-3) / math.log(gamma))
+
+
 def phi_of(agent: CMEPolicyIteration, states: np.ndarray) -> torch.Tensor:
     """phi(s) of the agent: (N, 4) states -> (N, p), float32."""
     with torch.no_grad():
@@ -153,7 +158,7 @@ def run_seed(job: tuple[int, int, dict[str, Any], int]) -> dict[str, Any]:
             "true_w": bellman_residual_weights(phi, true_next, true_rewards, gamma, l2),
         }
         iterated = true_policy_iteration(agent, states, phi, weights["true_w"], rounds)
-    values = monte_carlo_values(agent, states, math.ceil(math.log(1e-3) / math.log(gamma)))
+    values = monte_carlo_values(agent, states, rollout_horizon(gamma))
     eval_env = make_vec_env(CUSTOM_ENV, n_envs=1, seed=seed + EVAL_SEED_OFFSET)
     row: dict[str, Any] = {"seed": seed, "q": dynamics.q, "C": len(states)}
     row["return_agent"] = evaluate(agent, eval_env, EVAL_EPISODES)["return_mean"]

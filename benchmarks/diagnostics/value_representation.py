@@ -47,7 +47,7 @@ from benchmarks.diagnostics.gap_decomposition import (
     recorded_row,
     simulate,
 )
-from benchmarks.diagnostics.true_dynamics_planning import r_squared
+from benchmarks.diagnostics.true_dynamics_planning import r_squared, rollout_horizon
 from cme_agent import CMEPolicyIteration
 from cme_agent.planning import bellman_residual_weights
 from cme_agent.state_features import RandomFourierFeatures
@@ -118,6 +118,8 @@ def knn_r2(z: torch.Tensor, values: np.ndarray, train: np.ndarray, k: int) -> fl
 @torch.no_grad()
 def measure(agent: CMEPolicyIteration, env_id: str, collection_size: int, seed: int) -> dict[str, Any]:
     """Every candidate's R^2 on one trained agent: ``{name: {metric: value}}``."""
+    if len(agent.store) == 0:
+        raise SystemExit("the agent was saved without its transitions D: use another --stem")
     sim = gym.make(env_id).unwrapped
     gamma, l2 = agent.gamma, agent.evaluation_config.l2
     states, _ = collection(agent, env_id, collection_size, seed + COLLECTION_SEED_OFFSET)
@@ -126,10 +128,8 @@ def measure(agent: CMEPolicyIteration, env_id: str, collection_size: int, seed: 
     true = simulate(sim, states.qpos, states.qvel, actions)
     continuation = torch.as_tensor(~true.terminated, dtype=torch.float32)[:, None]
     rewards = torch.as_tensor(true.rewards, dtype=torch.float32)
-    values = monte_carlo_values(agent, sim, states, math.ceil(math.log(1e-3) / math.log(gamma)))
+    values = monte_carlo_values(agent, sim, states, rollout_horizon(gamma))
     obs, next_obs = (torch.as_tensor(x, dtype=torch.float32) for x in (states.obs, true.obs))
-    if len(agent.store) == 0:
-        raise SystemExit("the agent was saved without its transitions D: use another --stem")
     data = agent.store.get(slice(0, len(agent.store))).obs
     rows: dict[str, Any] = {}
     maps = candidate_maps(agent, data, seed)
