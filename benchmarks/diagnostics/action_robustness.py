@@ -1,0 +1,193 @@
+"""Does the greedy policy survive small changes of its actions? The same Q, acted on differently.
+
+Trains (or loads) ``CMEPolicyIteration("CMEPolicy", env_id, seed=seed)`` as gap_decomposition.py
+does, then runs ``--episodes`` episodes from fixed starts for each way of acting on the trained Q:
+
+- ``agent``: the greedy action, as trained;
+- ``noise <e>``: the greedy action plus uniform noise in +-e of the action's half-range, per dim;
+- ``refined``: the greedy action refined by ``--refine-steps`` steps of projected ascent on the
+  same Q (``action_search.refine_steps``), and how far that moves it (``refine_move``: mean
+  |refined - greedy| in half-ranges, on the states of the agent's own episodes).
+
+Per mode it reports the return, the episode length and the mean over episodes of the largest
+|obs[watch]| reached (``--watch``: 0 is the cart's position on the MuJoCo pendulums). A policy whose
+return falls under noise far smaller than its candidates' spacing holds only by an exact action
+(e.g. a zero force that keeps the cart still), and a refinement that moves the action by as much
+fails for the same reason, not because it exploits the model. Each seed's model goes to
+results/<stem>/<env>_seed<k>.zip and its record to .json (scratch); the report to results/<stem>.md.
+
+    python -m benchmarks.diagnostics.action_robustness --env-id InvertedPendulum-v5 --seeds 0 1 2 3 4
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import statistics
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from benchmarks.common import RESULTS, add_seed_arguments, command_line, map_seeds, markdown_table, write_markdown
+from benchmarks.diagnostics.gap_decomposition import COLLECTION_SEED_OFFSET, recorded_row
+from cme_agent import CMEPolicyIteration
+
+NOISE_LEVELS = (0.05, 0.1, 0.2)
+"""Default half-widths of the uniform action noise, in units of the action's half-range."""
+COLUMNS = ("return", "length", "max_abs_watched")
+
+
+class ActingRule:
+    """The trained agent's greedy action, perturbed by uniform noise or refined on the same Q.
+
+    :param agent: the trained agent (Box actions)
+    :param noise: half-width of the uniform noise, in half-ranges of the action (0: none)
+    :param refine_steps: projected-ascent steps from the greedy candidate (0: none)
+    :param seed: the noise's generator seed
+    """
+
+    def __init__(self, agent: CMEPolicyIteration, noise: float = 0.0, refine_steps: int = 0, seed: int = 0) -> None:
+        space = agent.action_space
+        if not isinstance(space, gym.spaces.Box):
+            raise ValueError(f"action_robustness needs a Box action space, not {space}")
+        self.agent, self.noise, self.rng = agent, noise, np.random.default_rng(seed)
+        self.low, self.high = space.low, space.high
+        self.search = dataclasses.replace(agent.policy.action_search, refine_steps=refine_steps)
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        """The action at one observation (obs_dim,) -> (act_dim,), inside the action box."""
+        policy = self.agent.policy
+        trained, policy.action_search = policy.action_search, self.search
+        try:
+            action, _ = self.agent.predict(obs, deterministic=True)
+        finally:
+            policy.action_search = trained
+        half_range = (self.high - self.low) / 2
+        action = action + self.rng.uniform(-self.noise, self.noise, size=action.shape) * half_range
+        return np.clip(action, self.low, self.high).astype(self.low.dtype)
+
+
+def run_episodes(env_id: str, act: ActingRule, episodes: int, seed: int, watch: int) -> tuple[dict[str, float], np.ndarray]:
+    """``episodes`` episodes of ``act`` from the starts of ``seed``.
+
+    :return: the means over episodes of ``COLUMNS`` (return, length, largest |obs[watch]|) and the
+        (T, obs_dim) observations the actions were taken at
+    """
+    env = gym.make(env_id)
+    returns, lengths, reached, visited = [], [], [], []
+    for episode in range(episodes):
+        obs, _ = env.reset(seed=seed + COLLECTION_SEED_OFFSET + episode)
+        total, steps, largest, done = 0.0, 0, abs(float(obs[watch])), False
+        while not done:
+            visited.append(obs)
+            obs, reward, terminated, truncated, _ = env.step(act(obs))
+            total, steps, largest = total + float(reward), steps + 1, max(largest, abs(float(obs[watch])))
+            done = terminated or truncated
+        returns.append(total)
+        lengths.append(steps)
+        reached.append(largest)
+    env.close()
+    means = [statistics.mean(values) for values in (returns, lengths, reached)]
+    return dict(zip(COLUMNS, means, strict=True)), np.asarray(visited, dtype=np.float32)
+
+
+@torch.no_grad()
+def refine_move(agent: CMEPolicyIteration, states: np.ndarray, refine_steps: int) -> float:
+    """Mean |refined - greedy| action over ``states`` (T, obs_dim) and action dims, in half-ranges."""
+    greedy = np.stack([ActingRule(agent)(s) for s in states])
+    refined = np.stack([ActingRule(agent, refine_steps=refine_steps)(s) for s in states])
+    space = agent.action_space
+    return float(np.mean(np.abs(refined - greedy) / ((space.high - space.low) / 2)))
+
+
+def measure(
+    agent: CMEPolicyIteration, env_id: str, episodes: int, seed: int, watch: int, noise: tuple[float, ...], refine_steps: int
+) -> dict[str, Any]:
+    """Every mode's means over ``episodes`` episodes, and the refinement's move on the agent's own states."""
+    modes: dict[str, dict[str, float]] = {}
+    modes["agent"], own_states = run_episodes(env_id, ActingRule(agent), episodes, seed, watch)
+    for level in noise:
+        modes[f"noise {level:g}"], _ = run_episodes(env_id, ActingRule(agent, noise=level, seed=seed), episodes, seed, watch)
+    modes["refined"], _ = run_episodes(env_id, ActingRule(agent, refine_steps=refine_steps), episodes, seed, watch)
+    return {"modes": modes, "refine_move": refine_move(agent, own_states, refine_steps)}
+
+
+@dataclass(frozen=True)
+class Job:
+    """One seed: train ``env_id`` for ``steps`` env steps (constructor arguments ``kwargs``), then
+    act on its Q in each mode; files under results/<stem>/."""
+
+    env_id: str
+    seed: int
+    steps: int
+    kwargs: dict[str, Any]
+    episodes: int
+    watch: int
+    noise: tuple[float, ...]
+    refine_steps: int
+    stem: str
+
+    @property
+    def path(self) -> Path:
+        """results/<stem>/<env>_seed<k> (the model .zip, the record .json)."""
+        return RESULTS / self.stem / f"{self.env_id}_seed{self.seed}"
+
+
+def run_seed(job: Job) -> dict[str, Any]:
+    """Train (or load) one agent and measure it, or read the record of an earlier run."""
+    row = recorded_row(
+        job, lambda agent: measure(agent, job.env_id, job.episodes, job.seed, job.watch, job.noise, job.refine_steps)
+    )
+    print(job.env_id, job.seed, {mode: round(values["return"], 1) for mode, values in row["modes"].items()}, flush=True)
+    return row
+
+
+def report(args: argparse.Namespace, rows: list[dict[str, Any]]) -> str:
+    """The markdown report: per mode, each column's mean over seeds (per seed in brackets)."""
+    table = []
+    for mode in rows[0]["modes"]:
+        cells = []
+        for column in COLUMNS:
+            per_seed = [row["modes"][mode][column] for row in rows]
+            cells.append(f"{statistics.mean(per_seed):.3g} ({', '.join(f'{v:.3g}' for v in per_seed)})")
+        table.append([mode, *cells])
+    moves = [row["refine_move"] for row in rows]
+    return "\n".join(
+        [
+            f"# The greedy policy on {args.env_id} under small changes of its actions\n",
+            f"Command: `{command_line()}`.\n",
+            f'`CMEPolicyIteration("CMEPolicy", {args.env_id!r}, seed=seed, **{json.loads(args.kwargs)})` trained for '
+            f"{args.steps} env steps, then {args.episodes} episodes per mode on the same Q; seeds {args.seeds}. Each cell: "
+            "the mean over seeds (per seed in brackets); noise in half-ranges of the action; the watched column is "
+            f"the largest |obs[{args.watch}]| of an episode. Definitions: the module docstring of "
+            "`benchmarks/diagnostics/action_robustness.py`.\n",
+            markdown_table(["mode", "return", "episode length", f"largest abs(obs[{args.watch}])"], table) + "\n",
+            f"The refinement ({args.refine_steps} steps) moves the greedy action by {statistics.mean(moves):.3f} "
+            f"half-ranges on average ({', '.join(f'{m:.3f}' for m in moves)}).\n",
+        ]
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--env-id", default="InvertedPendulum-v5", help="an env id with a Box action space")
+    add_seed_arguments(parser, "")
+    parser.add_argument("--episodes", type=int, default=10, help="episodes per mode and seed")
+    parser.add_argument("--watch", type=int, default=0, help="the observation dim whose largest |value| is reported")
+    parser.add_argument("--noise", nargs="+", type=float, default=list(NOISE_LEVELS), help="noise half-widths (half-ranges)")
+    parser.add_argument("--refine-steps", type=int, default=10, help="projected-ascent steps of the refined mode")
+    parser.set_defaults(workers=1)
+    args = parser.parse_args()
+    args.stem = args.stem or f"action_robustness_{args.env_id}"
+    settings = (args.episodes, args.watch, tuple(args.noise), args.refine_steps, args.stem)
+    jobs = [Job(args.env_id, seed, args.steps, json.loads(args.kwargs), *settings) for seed in args.seeds]
+    write_markdown(args.stem, report(args, map_seeds(run_seed, jobs, args.workers)))
+
+
+if __name__ == "__main__":
+    main()

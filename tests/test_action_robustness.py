@@ -1,0 +1,72 @@
+"""benchmarks/diagnostics/action_robustness.py: the acting rules on one trained Q (as trained,
+noisy, refined), the episodes they run and the measurement of a briefly trained agent."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from benchmarks.diagnostics import action_robustness as ar
+from cme_agent import CMEPolicyIteration
+
+pytest.importorskip("mujoco")
+
+
+@pytest.fixture(scope="module")
+def agent() -> CMEPolicyIteration:
+    return CMEPolicyIteration("CMEPolicy", "InvertedPendulum-v5", seed=0).learn(300)
+
+
+@pytest.fixture(scope="module")
+def states(agent: CMEPolicyIteration) -> np.ndarray:
+    return agent.store.get(slice(0, 50)).obs.numpy()
+
+
+def test_the_plain_rule_is_the_agents_greedy_action(agent: CMEPolicyIteration, states: np.ndarray) -> None:
+    rule = ar.ActingRule(agent)
+    for obs in states[:10]:
+        np.testing.assert_array_equal(rule(obs), agent.predict(obs, deterministic=True)[0])
+
+
+def test_noise_moves_the_action_within_its_half_width_and_the_box(agent: CMEPolicyIteration, states: np.ndarray) -> None:
+    plain, noisy = ar.ActingRule(agent), ar.ActingRule(agent, noise=0.2, seed=1)
+    half_range = (agent.action_space.high - agent.action_space.low) / 2
+    moves = []
+    for obs in states:
+        action = noisy(obs)
+        assert agent.action_space.contains(action)
+        moves.append(np.abs(action - plain(obs)) / half_range)
+    moves = np.concatenate(moves)
+    assert moves.max() <= 0.2 + 1e-6
+    assert moves.mean() > 0.02  # not the greedy action in disguise
+
+
+def test_the_refined_rule_raises_q_and_restores_the_agents_search(agent: CMEPolicyIteration, states: np.ndarray) -> None:
+    trained = agent.policy.action_search
+    refined = ar.ActingRule(agent, refine_steps=10)
+    obs = torch.as_tensor(states)
+    greedy_actions = torch.as_tensor(np.stack([ar.ActingRule(agent)(s) for s in states]))
+    refined_actions = torch.as_tensor(np.stack([refined(s) for s in states]))
+    assert agent.policy.action_search is trained and trained.refine_steps == 0
+    with torch.no_grad():
+        q_greedy, q_refined = agent.policy.q_values(obs, greedy_actions), agent.policy.q_values(obs, refined_actions)
+    assert bool((q_refined >= q_greedy - 1e-5).all())
+    assert bool((q_refined > q_greedy + 1e-6).any())  # the refinement moved somewhere
+    assert ar.refine_move(agent, states, 10) > 0
+
+
+def test_a_discrete_action_space_is_refused() -> None:
+    discrete = CMEPolicyIteration("CMEPolicy", "CartPole-v1", seed=0)
+    with pytest.raises(ValueError, match="Box action space"):
+        ar.ActingRule(discrete)
+
+
+def test_measure_reports_every_mode(agent: CMEPolicyIteration) -> None:
+    row = ar.measure(agent, "InvertedPendulum-v5", episodes=2, seed=0, watch=0, noise=(0.1,), refine_steps=3)
+    assert list(row["modes"]) == ["agent", "noise 0.1", "refined"]
+    for values in row["modes"].values():
+        assert set(values) == set(ar.COLUMNS)
+        assert values["length"] >= 1 and 0 <= values["return"] <= values["length"]  # IP: at most 1 per step
+        assert values["max_abs_watched"] >= 0
+    assert row["refine_move"] >= 0
