@@ -63,10 +63,26 @@ def test_a_discrete_action_space_is_refused() -> None:
 
 
 def test_measure_reports_every_mode(agent: CMEPolicyIteration) -> None:
-    row = ar.measure(agent, "InvertedPendulum-v5", episodes=2, seed=0, watch=0, noise=(0.1,), refine_steps=3)
+    row = ar.measure(
+        agent, "InvertedPendulum-v5", episodes=2, seed=0, watch=0, noise=(0.1,), refine_steps=3, offsets=(-0.3, 0.0)
+    )
     assert list(row["modes"]) == ["agent", "noise 0.1", "refined"]
     for values in row["modes"].values():
         assert set(values) == set(ar.COLUMNS)
         assert values["length"] >= 1 and 0 <= values["return"] <= values["length"]  # IP: at most 1 per step
         assert values["max_abs_watched"] >= 0
     assert row["refine_move"] >= 0
+    assert [pick["offset"] for pick in row["offsets"]] == [-0.3, 0.0]
+    for pick in row["offsets"]:
+        k = len(agent.policy.candidates)
+        assert len(pick["model_q"]) == len(pick["exact_q"]) == k
+        best = int(np.argmax(pick["model_q"]))
+        assert pick["regret"] == pytest.approx(max(pick["exact_q"]) - pick["exact_q"][best])
+
+
+def test_exact_q_from_the_centre_at_rest_follows_the_true_step(agent: CMEPolicyIteration) -> None:
+    # from rest at the centre the pole stays up for a while under any force: Q^pi >= 1 (first reward) at every candidate
+    (pick,) = ar.picks_at_offsets(agent, "InvertedPendulum-v5", (0.0,))
+    assert min(pick["exact_q"]) >= 1.0
+    assert pick["model_q"] == pytest.approx(agent.policy.candidate_q_values(torch.zeros(1, 4))[0].tolist(), abs=1e-5)
+    assert ar.picks_at_offsets(agent, "InvertedPendulum-v5", ()) == []

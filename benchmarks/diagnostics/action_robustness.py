@@ -10,7 +10,11 @@ does, then runs ``--episodes`` episodes from fixed starts for each way of acting
   |refined - greedy| in half-ranges, on the states of the agent's own episodes).
 
 Per mode it reports the return, the episode length and the mean over episodes of the largest
-|obs[watch]| reached (``--watch``: 0 is the cart's position on the MuJoCo pendulums). A policy whose
+|obs[watch]| reached (``--watch``: 0 is the cart's position on the MuJoCo pendulums). On a MuJoCo
+env it also starts at rest with qpos[0] (the cart's position on the pendulums) at each of
+``--offsets`` and compares the model's Q at the candidate actions with the exact Q^pi there
+(gap_decomposition.exact_q: one true step, then true rollouts of pi): ``regret`` is the exact Q^pi
+lost by the model's pick. A policy whose
 return falls under noise far smaller than its candidates' spacing holds only by an exact action
 (e.g. a zero force that keeps the cart still), and a refinement that moves the action by as much
 fails for the same reason, not because it exploits the model. Each seed's model goes to
@@ -34,12 +38,17 @@ import numpy as np
 import torch
 
 from benchmarks.common import RESULTS, add_seed_arguments, command_line, map_seeds, markdown_table, write_markdown
-from benchmarks.diagnostics.gap_decomposition import COLLECTION_SEED_OFFSET, recorded_row
+from benchmarks.diagnostics.gap_decomposition import COLLECTION_SEED_OFFSET, Visited, exact_q, recorded_row, simulate_all
+from benchmarks.diagnostics.true_dynamics_planning import rollout_horizon
 from cme_agent import CMEPolicyIteration
 
 NOISE_LEVELS = (0.05, 0.1, 0.2)
 """Default half-widths of the uniform action noise, in units of the action's half-range."""
+OFFSETS = (-0.6, -0.4, -0.2, 0.0, 0.2, 0.4, 0.6)
+"""Default starts: qpos[0] (env units), the rest of the state at the env's initial one, at rest."""
 COLUMNS = ("return", "length", "max_abs_watched")
+LARGE_REGRET = 0.5
+"""A regret of the model's pick above this (reward units) is counted apart in the report."""
 
 
 class ActingRule:
@@ -105,16 +114,62 @@ def refine_move(agent: CMEPolicyIteration, states: np.ndarray, refine_steps: int
     return float(np.mean(np.abs(refined - greedy) / ((space.high - space.low) / 2)))
 
 
+@torch.no_grad()
+def picks_at_offsets(agent: CMEPolicyIteration, env_id: str, offsets: tuple[float, ...]) -> list[dict[str, Any]]:
+    """The model's Q and the exact Q^pi at the candidates from rest with qpos[0] at each offset.
+
+    :return: per offset: ``model_q`` and ``exact_q`` (K,) lists and ``regret``, the exact Q^pi
+        of the best candidate minus that of the model's pick; empty where the env has no ``set_state``
+    """
+    sim = gym.make(env_id).unwrapped
+    if not offsets or not hasattr(sim, "set_state"):
+        return []
+    sim.reset(seed=0)
+    qpos = np.repeat(sim.init_qpos[None].astype(np.float64), len(offsets), axis=0)
+    qpos[:, 0] = offsets
+    qvel = np.zeros((len(offsets), sim.init_qvel.size))
+    obs = []
+    for position, velocity in zip(qpos, qvel, strict=True):
+        sim.set_state(position, velocity)
+        obs.append(sim._get_obs())
+    starts = Visited(np.asarray(obs), qpos, qvel, np.arange(len(offsets)))
+    candidates = agent.policy.candidates.numpy()
+    exact = exact_q(agent, sim, simulate_all(sim, starts, candidates), rollout_horizon(agent.gamma))
+    model = agent.policy.candidate_q_values(torch.as_tensor(starts.obs, dtype=torch.float32)).numpy()
+    sim.close()
+    return [
+        {
+            "offset": x,
+            "model_q": model[i].tolist(),
+            "exact_q": exact[i].tolist(),
+            "regret": float(exact[i].max() - exact[i, model[i].argmax()]),
+        }
+        for i, x in enumerate(offsets)
+    ]
+
+
 def measure(
-    agent: CMEPolicyIteration, env_id: str, episodes: int, seed: int, watch: int, noise: tuple[float, ...], refine_steps: int
+    agent: CMEPolicyIteration,
+    env_id: str,
+    episodes: int,
+    seed: int,
+    watch: int,
+    noise: tuple[float, ...],
+    refine_steps: int,
+    offsets: tuple[float, ...] = (),
 ) -> dict[str, Any]:
-    """Every mode's means over ``episodes`` episodes, and the refinement's move on the agent's own states."""
+    """Every mode's means over ``episodes`` episodes, the refinement's move on the agent's own
+    states, and the picks from rest at ``offsets`` (:func:`picks_at_offsets`)."""
     modes: dict[str, dict[str, float]] = {}
     modes["agent"], own_states = run_episodes(env_id, ActingRule(agent), episodes, seed, watch)
     for level in noise:
         modes[f"noise {level:g}"], _ = run_episodes(env_id, ActingRule(agent, noise=level, seed=seed), episodes, seed, watch)
     modes["refined"], _ = run_episodes(env_id, ActingRule(agent, refine_steps=refine_steps), episodes, seed, watch)
-    return {"modes": modes, "refine_move": refine_move(agent, own_states, refine_steps)}
+    return {
+        "modes": modes,
+        "refine_move": refine_move(agent, own_states, refine_steps),
+        "offsets": picks_at_offsets(agent, env_id, offsets),
+    }
 
 
 @dataclass(frozen=True)
@@ -130,6 +185,7 @@ class Job:
     watch: int
     noise: tuple[float, ...]
     refine_steps: int
+    offsets: tuple[float, ...]
     stem: str
 
     @property
@@ -141,7 +197,8 @@ class Job:
 def run_seed(job: Job) -> dict[str, Any]:
     """Train (or load) one agent and measure it, or read the record of an earlier run."""
     row = recorded_row(
-        job, lambda agent: measure(agent, job.env_id, job.episodes, job.seed, job.watch, job.noise, job.refine_steps)
+        job,
+        lambda agent: measure(agent, job.env_id, job.episodes, job.seed, job.watch, job.noise, job.refine_steps, job.offsets),
     )
     print(job.env_id, job.seed, {mode: round(values["return"], 1) for mode, values in row["modes"].items()}, flush=True)
     return row
@@ -169,8 +226,31 @@ def report(args: argparse.Namespace, rows: list[dict[str, Any]]) -> str:
             markdown_table(["mode", "return", "episode length", f"largest abs(obs[{args.watch}])"], table) + "\n",
             f"The refinement ({args.refine_steps} steps) moves the greedy action by {statistics.mean(moves):.3f} "
             f"half-ranges on average ({', '.join(f'{m:.3f}' for m in moves)}).\n",
+            *offsets_section(rows),
         ]
     )
+
+
+def offsets_section(rows: list[dict[str, Any]]) -> list[str]:
+    """The picks from rest at each offset, seed by seed: the model's Q and the exact Q^pi per candidate."""
+    if not rows[0]["offsets"]:
+        return []
+
+    def values(numbers: list[float]) -> str:
+        return ", ".join(f"{v:.2f}" for v in numbers)
+
+    table = [
+        [row["seed"], f"{pick['offset']:+g}", values(pick["model_q"]), values(pick["exact_q"]), f"{pick['regret']:.2f}"]
+        for row in rows
+        for pick in row["offsets"]
+    ]
+    regrets = [pick["regret"] for row in rows for pick in row["offsets"]]
+    wrong, large = sum(r > 0 for r in regrets), sum(r > LARGE_REGRET for r in regrets)
+    return [
+        f"From rest with qpos[0] at each offset: the model's pick loses exact Q^pi at {wrong} of {len(table)} starts, "
+        f"more than {LARGE_REGRET:g} at {large}.\n",
+        markdown_table(["seed", "qpos[0]", "model Q per candidate", "exact Q^pi per candidate", "regret"], table) + "\n",
+    ]
 
 
 def main() -> None:
@@ -181,10 +261,11 @@ def main() -> None:
     parser.add_argument("--watch", type=int, default=0, help="the observation dim whose largest |value| is reported")
     parser.add_argument("--noise", nargs="+", type=float, default=list(NOISE_LEVELS), help="noise half-widths (half-ranges)")
     parser.add_argument("--refine-steps", type=int, default=10, help="projected-ascent steps of the refined mode")
+    parser.add_argument("--offsets", nargs="*", type=float, default=list(OFFSETS), help="qpos[0] of the starts at rest")
     parser.set_defaults(workers=1)
     args = parser.parse_args()
     args.stem = args.stem or f"action_robustness_{args.env_id}"
-    settings = (args.episodes, args.watch, tuple(args.noise), args.refine_steps, args.stem)
+    settings = (args.episodes, args.watch, tuple(args.noise), args.refine_steps, tuple(args.offsets), args.stem)
     jobs = [Job(args.env_id, seed, args.steps, json.loads(args.kwargs), *settings) for seed in args.seeds]
     write_markdown(args.stem, report(args, map_seeds(run_seed, jobs, args.workers)))
 
