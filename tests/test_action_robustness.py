@@ -3,11 +3,13 @@ noisy, refined), the episodes they run and the measurement of a briefly trained 
 
 from __future__ import annotations
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch
 
 from benchmarks.diagnostics import action_robustness as ar
+from benchmarks.diagnostics.gap_decomposition import Visited, simulate_all
 from cme_agent import CMEPolicyIteration
 
 pytest.importorskip("mujoco")
@@ -86,3 +88,36 @@ def test_exact_q_from_the_centre_at_rest_follows_the_true_step(agent: CMEPolicyI
     assert min(pick["exact_q"]) >= 1.0
     assert pick["model_q"] == pytest.approx(agent.policy.candidate_q_values(torch.zeros(1, 4))[0].tolist(), abs=1e-5)
     assert ar.picks_at_offsets(agent, "InvertedPendulum-v5", ()) == []
+
+
+def test_data_near_counts_the_stored_states_around_each_start(agent: CMEPolicyIteration) -> None:
+    centre, far = ar.picks_at_offsets(agent, "InvertedPendulum-v5", (0.0, 0.9))
+    stored = torch.cat([agent.store.get(slice(0, len(agent.store))).obs, agent.holdout.get(slice(0, len(agent.holdout))).obs])
+    assert centre["data_near"] == pytest.approx(float((stored[:, 0].abs() <= ar.NEAR).double().mean()))
+    assert centre["data_near"] > 0.5  # the episodes start within 0.01 of the centre
+    assert far["data_near"] == 0.0
+    assert far["phi_error"] > 0 and np.isfinite(far["phi_error"])
+
+
+def test_one_step_errors_are_the_models_relative_error_per_candidate(agent: CMEPolicyIteration, states: np.ndarray) -> None:
+    sim = gym.make("InvertedPendulum-v5").unwrapped
+    sim.reset(seed=0)
+    # stored observations of IP are (qpos, qvel), so each is its own simulator state
+    chosen = states[:3].astype(np.float64)
+    starts = Visited(chosen, chosen[:, :2], chosen[:, 2:], np.arange(3))
+    candidates = agent.policy.candidates.numpy()
+    steps = simulate_all(sim, starts, candidates)
+    errors = ar.one_step_errors(agent, chosen, candidates, steps)
+    dynamics = agent.dynamics
+    for i in range(3):
+        per_candidate = []
+        for j in range(len(candidates)):
+            s = torch.as_tensor(chosen[i : i + 1], dtype=torch.float32)
+            a = torch.as_tensor(candidates[j : j + 1])
+            with torch.no_grad():
+                phi = dynamics.phi(s)
+                predicted, _ = dynamics.read(phi, dynamics.features(s, a) @ dynamics.readout())
+                true_next = dynamics.phi(torch.as_tensor(steps.obs[i, j : j + 1], dtype=torch.float32))
+            true_next = true_next * (0.0 if steps.terminated[i, j] else 1.0)
+            per_candidate.append(float((predicted - true_next).norm() / (true_next - phi).norm()))
+        assert errors[i] == pytest.approx(np.mean(per_candidate), rel=1e-4)

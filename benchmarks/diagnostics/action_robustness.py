@@ -14,7 +14,9 @@ Per mode it reports the return, the episode length and the mean over episodes of
 env it also starts at rest with qpos[0] (the cart's position on the pendulums) at each of
 ``--offsets`` and compares the model's Q at the candidate actions with the exact Q^pi there
 (gap_decomposition.exact_q: one true step, then true rollouts of pi): ``regret`` is the exact Q^pi
-lost by the model's pick. A policy whose
+lost by the model's pick; ``phi_error`` the model's one-step error there, mean over the candidates of
+|E_model[phi~(S')] - phi~(s')| over |phi~(s') - phi(s)| (as gap_decomposition.py); ``data_near`` the
+share of the agent's stored transitions whose obs[watch] lies within ``NEAR`` of the start's. A policy whose
 return falls under noise far smaller than its candidates' spacing holds only by an exact action
 (e.g. a zero force that keeps the cart still), and a refinement that moves the action by as much
 fails for the same reason, not because it exploits the model. Each seed's model goes to
@@ -38,7 +40,14 @@ import numpy as np
 import torch
 
 from benchmarks.common import RESULTS, add_seed_arguments, command_line, map_seeds, markdown_table, write_markdown
-from benchmarks.diagnostics.gap_decomposition import COLLECTION_SEED_OFFSET, Visited, exact_q, recorded_row, simulate_all
+from benchmarks.diagnostics.gap_decomposition import (
+    COLLECTION_SEED_OFFSET,
+    Steps,
+    Visited,
+    exact_q,
+    recorded_row,
+    simulate_all,
+)
 from benchmarks.diagnostics.true_dynamics_planning import rollout_horizon
 from cme_agent import CMEPolicyIteration
 
@@ -49,6 +58,10 @@ OFFSETS = (-0.6, -0.4, -0.2, 0.0, 0.2, 0.4, 0.6)
 COLUMNS = ("return", "length", "max_abs_watched")
 LARGE_REGRET = 0.5
 """A regret of the model's pick above this (reward units) is counted apart in the report."""
+OFFSET_MEANS = ("regret", "phi_error", "data_near")
+"""The per-start numbers averaged over seeds, per offset, in the report."""
+NEAR = 0.05
+"""Half-width (env units of obs[watch]) of the window in which stored states count as data near a start."""
 
 
 class ActingRule:
@@ -115,11 +128,16 @@ def refine_move(agent: CMEPolicyIteration, states: np.ndarray, refine_steps: int
 
 
 @torch.no_grad()
-def picks_at_offsets(agent: CMEPolicyIteration, env_id: str, offsets: tuple[float, ...]) -> list[dict[str, Any]]:
-    """The model's Q and the exact Q^pi at the candidates from rest with qpos[0] at each offset.
+def picks_at_offsets(
+    agent: CMEPolicyIteration, env_id: str, offsets: tuple[float, ...], watch: int = 0
+) -> list[dict[str, Any]]:
+    """The model's Q and the exact Q^pi at the candidates from rest with qpos[0] at each offset,
+    with the model's one-step error there and the data near each start.
 
-    :return: per offset: ``model_q`` and ``exact_q`` (K,) lists and ``regret``, the exact Q^pi
-        of the best candidate minus that of the model's pick; empty where the env has no ``set_state``
+    :param watch: the observation dim on which stored states count as near a start (:data:`NEAR`)
+    :return: per offset: ``model_q`` and ``exact_q`` (K,) lists, ``regret``, the exact Q^pi of the
+        best candidate minus that of the model's pick, ``phi_error`` and ``data_near`` (module
+        docstring); empty where the env has no ``set_state``
     """
     sim = gym.make(env_id).unwrapped
     if not offsets or not hasattr(sim, "set_state"):
@@ -134,18 +152,45 @@ def picks_at_offsets(agent: CMEPolicyIteration, env_id: str, offsets: tuple[floa
         obs.append(sim._get_obs())
     starts = Visited(np.asarray(obs), qpos, qvel, np.arange(len(offsets)))
     candidates = agent.policy.candidates.numpy()
-    exact = exact_q(agent, sim, simulate_all(sim, starts, candidates), rollout_horizon(agent.gamma))
+    steps = simulate_all(sim, starts, candidates)
+    exact = exact_q(agent, sim, steps, rollout_horizon(agent.gamma))
     model = agent.policy.candidate_q_values(torch.as_tensor(starts.obs, dtype=torch.float32)).numpy()
     sim.close()
+    errors = one_step_errors(agent, starts.obs, candidates, steps)
+    stored = torch.cat([store.get(slice(0, len(store))).obs[:, watch] for store in (agent.store, agent.holdout)]).numpy()
     return [
         {
             "offset": x,
             "model_q": model[i].tolist(),
             "exact_q": exact[i].tolist(),
             "regret": float(exact[i].max() - exact[i, model[i].argmax()]),
+            "phi_error": float(errors[i]),
+            "data_near": float(np.mean(np.abs(stored - starts.obs[i, watch]) <= NEAR)),
         }
         for i, x in enumerate(offsets)
     ]
+
+
+@torch.no_grad()
+def one_step_errors(agent: CMEPolicyIteration, obs: np.ndarray, candidates: np.ndarray, steps: Steps) -> np.ndarray:
+    """Per state, the mean over the candidates of the model's one-step error
+    |E_model[phi~(S')] - phi~(s')| / |phi~(s') - phi(s)|.
+
+    :param obs: (N, obs_dim) states
+    :param candidates: (K, act_dim) actions
+    :param steps: the true transitions from every state under every candidate, of shape (N, K)
+    :return: (N,)
+    """
+    n, k = steps.rewards.shape
+    dynamics = agent.dynamics
+    states = torch.as_tensor(np.repeat(obs, k, axis=0), dtype=torch.float32)
+    actions = torch.as_tensor(np.tile(candidates, (n, 1)), dtype=torch.float32)
+    phi = dynamics.phi(states)
+    predicted, _ = dynamics.read(phi, dynamics.features(states, actions) @ dynamics.readout())
+    alive = torch.as_tensor(~steps.terminated.reshape(-1), dtype=torch.float32).unsqueeze(1)
+    true_next = dynamics.phi(torch.as_tensor(steps.obs.reshape(n * k, -1), dtype=torch.float32)) * alive
+    ratio = (predicted - true_next).norm(dim=1) / (true_next - phi).norm(dim=1).clamp_min(1e-12)
+    return ratio.reshape(n, k).mean(dim=1).numpy()
 
 
 def measure(
@@ -168,7 +213,7 @@ def measure(
     return {
         "modes": modes,
         "refine_move": refine_move(agent, own_states, refine_steps),
-        "offsets": picks_at_offsets(agent, env_id, offsets),
+        "offsets": picks_at_offsets(agent, env_id, offsets, watch),
     }
 
 
@@ -240,16 +285,42 @@ def offsets_section(rows: list[dict[str, Any]]) -> list[str]:
         return ", ".join(f"{v:.2f}" for v in numbers)
 
     table = [
-        [row["seed"], f"{pick['offset']:+g}", values(pick["model_q"]), values(pick["exact_q"]), f"{pick['regret']:.2f}"]
+        [
+            row["seed"],
+            f"{pick['offset']:+g}",
+            values(pick["model_q"]),
+            values(pick["exact_q"]),
+            f"{pick['regret']:.2f}",
+            f"{pick['phi_error']:.2f}",
+            f"{pick['data_near']:.3f}",
+        ]
         for row in rows
         for pick in row["offsets"]
     ]
     regrets = [pick["regret"] for row in rows for pick in row["offsets"]]
     wrong, large = sum(r > 0 for r in regrets), sum(r > LARGE_REGRET for r in regrets)
+    by_offset = [
+        [f"{pick['offset']:+g}", *(f"{statistics.mean(r['offsets'][i][key] for r in rows):.3g}" for key in OFFSET_MEANS)]
+        for i, pick in enumerate(rows[0]["offsets"])
+    ]
     return [
         f"From rest with qpos[0] at each offset: the model's pick loses exact Q^pi at {wrong} of {len(table)} starts, "
-        f"more than {LARGE_REGRET:g} at {large}.\n",
-        markdown_table(["seed", "qpos[0]", "model Q per candidate", "exact Q^pi per candidate", "regret"], table) + "\n",
+        f"more than {LARGE_REGRET:g} at {large}. Means over seeds per offset (data near: within {NEAR:g} of the "
+        "start's watched dim):\n",
+        markdown_table(["qpos[0]", "regret", "model's phi error", "data near"], by_offset) + "\n",
+        markdown_table(
+            [
+                "seed",
+                "qpos[0]",
+                "model Q per candidate",
+                "exact Q^pi per candidate",
+                "regret",
+                "model's phi error",
+                "data near",
+            ],
+            table,
+        )
+        + "\n",
     ]
 
 
