@@ -102,7 +102,12 @@ def test_policy_evaluation_equals_the_reference_in_float64(trained, env_id, tole
     rewards = dynamics.reward.step_reward(states, actions).double() + phi @ c_phi.double() + psi @ c_psi.double()
     reference = bellman_residual_weights(phi, next_phi, rewards, gamma, l2)
     values, reference_values = phi @ weights.double(), phi @ reference
-    assert torch.linalg.vector_norm(values - reference_values) <= tolerance * torch.linalg.vector_norm(reference_values)
+    scale = torch.linalg.vector_norm(reference_values)
+    # float32's own rounding of this system, which depends on the BLAS's code path (CartPole: 0.57e-3
+    # of the values with MKL's AVX2 kernels, 1.03e-3 with its AVX-512 ones): the plain float32 solve
+    plain = phi @ bellman_residual_weights(phi.float(), next_phi.float(), rewards.float(), gamma, l2).double()
+    floor = torch.linalg.vector_norm(plain - reference_values) / scale
+    assert torch.linalg.vector_norm(values - reference_values) <= max(tolerance, 2 * float(floor)) * scale
 
 
 def _grid(resolution, periodic_pairs=()):
