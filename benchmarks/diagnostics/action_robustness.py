@@ -324,16 +324,21 @@ def offsets_section(rows: list[dict[str, Any]]) -> list[str]:
     ]
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def add_episode_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--env-id`` (a Box action space), the seed arguments (one worker by default) and ``--episodes``."""
     parser.add_argument("--env-id", default="InvertedPendulum-v5", help="an env id with a Box action space")
     add_seed_arguments(parser, "")
     parser.add_argument("--episodes", type=int, default=10, help="episodes per mode and seed")
+    parser.set_defaults(workers=1)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_episode_arguments(parser)
     parser.add_argument("--watch", type=int, default=0, help="the observation dim whose largest |value| is reported")
     parser.add_argument("--noise", nargs="+", type=float, default=list(NOISE_LEVELS), help="noise half-widths (half-ranges)")
     parser.add_argument("--refine-steps", type=int, default=10, help="projected-ascent steps of the refined mode")
     parser.add_argument("--offsets", nargs="*", type=float, default=list(OFFSETS), help="qpos[0] of the starts at rest")
-    parser.set_defaults(workers=1)
     args = parser.parse_args()
     args.stem = args.stem or f"action_robustness_{args.env_id}"
     settings = (args.episodes, args.watch, tuple(args.noise), args.refine_steps, tuple(args.offsets), args.stem)

@@ -1,0 +1,276 @@
+"""Would a model of the observation plan better on the agent's own data? The CME against it, one planner.
+
+Trains (or loads) ``CMEPolicyIteration("CMEPolicy", env_id, seed=seed)`` (library defaults plus
+``--kwargs``) for ``--steps`` env steps, as action_robustness.py does, then plans on its stored
+transitions with two models and one planner, and acts greedily on each (``--episodes`` episodes
+from the starts of action_robustness.py):
+
+- ``agent``: the agent as trained;
+- ``cme``: the agent's own model, E_model[phi~(S') | s, a] and the expected reward read from psi;
+- ``observation``: a model of the observation: the change s' - s linear in [s, a, 1] (least
+  squares), P(terminated | s') by logistic regression and the reward by ridge regression on
+  quadratic features of the standardised s' (and a, for the reward), so that
+  E[phi~(S')] ~ (1 - P(terminated | s^')) phi(s^') at the predicted s^'.
+
+The planner, the same for both models: C is ``--collection`` states drawn from the stored ones;
+``--rounds`` rounds of eq. (7) on C, each greedy over the agent's candidates, the value weights
+smoothed by the agent's omega; acting is greedy on the last Q through the same model. Also
+reported: the observation model's held-out R^2 of the change per observation dim and its held-out
+accuracy on termination (the agent's holdout transitions). Each seed's model goes to
+results/<stem>/<env>_seed<k>.zip and its record to .json (scratch); the report to results/<stem>.md.
+
+    python -m benchmarks.diagnostics.observation_model --env-id InvertedPendulum-v5 --seeds 0 1 2 3 4
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+
+from benchmarks.common import RESULTS, command_line, map_seeds, markdown_table, write_markdown
+from benchmarks.diagnostics.action_robustness import add_episode_arguments, run_episodes
+from benchmarks.diagnostics.gap_decomposition import recorded_row
+from cme_agent import CMEPolicyIteration
+from cme_agent.buffer import Transitions
+from cme_agent.planning import bellman_residual_weights
+
+MODES = ("agent", "cme", "observation")
+RIDGE = 1e-6
+"""Ridge of the observation model's least-squares fits, relative to the number of rows."""
+
+
+def quadratic(x: torch.Tensor) -> torch.Tensor:
+    """[x, x^2, 1]: (N, d) -> (N, 2 d + 1)."""
+    return torch.cat([x, x.square(), torch.ones(len(x), 1, dtype=x.dtype)], dim=1)
+
+
+def affine(obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+    """[s, a, 1]: (N, obs_dim), (N, act_dim) -> (N, obs_dim + act_dim + 1)."""
+    return torch.cat([obs, actions, torch.ones(len(obs), 1, dtype=obs.dtype)], dim=1)
+
+
+def ridge(features: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+    """argmin_W ||features W - targets||^2 + RIDGE n ||W||^2: (N, f), (N, ...) -> (f, ...)."""
+    gram = features.T @ features + RIDGE * len(features) * torch.eye(features.shape[1], dtype=features.dtype)
+    return torch.linalg.solve(gram, features.T @ targets)
+
+
+class Model(Protocol):
+    def __call__(self, obs: torch.Tensor, candidates: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """E[phi~(S')] (N, K, p) and the expected reward (N, K) at (N, obs_dim) states and (K, act_dim) candidates."""
+        ...
+
+
+class ObservationModel:
+    """s^' = s + W^T [s, a, 1]; P(terminated | s') and r(s', a) on quadratic features (module docstring).
+
+    :param agent: the agent whose phi reads the predicted states
+    :param data: the transitions it is fitted on (Box actions)
+    """
+
+    def __init__(self, agent: CMEPolicyIteration, data: Transitions) -> None:
+        self.phi = agent.dynamics.phi
+        obs, next_obs, actions = data.obs.double(), data.next_obs.double(), data.actions.double().reshape(len(data.obs), -1)
+        moving = ~data.terminated
+        self.change = ridge(affine(obs, actions)[moving], (next_obs - obs)[moving])  # (obs_dim + act_dim + 1, obs_dim)
+        self.mean, self.std = next_obs.mean(dim=0), next_obs.std(dim=0).clamp_min(1e-6)
+        self.reward = ridge(self.reward_features(next_obs, actions), data.rewards.double())
+        self.termination = logistic(quadratic(self.standardise(next_obs)), data.terminated.double())
+
+    def standardise(self, next_obs: torch.Tensor) -> torch.Tensor:
+        return (next_obs - self.mean) / self.std
+
+    def reward_features(self, next_obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        return torch.cat([quadratic(self.standardise(next_obs)), actions, actions.square()], dim=1)
+
+    def next_obs(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """s^': (N, obs_dim), (N, act_dim) -> (N, obs_dim), float64."""
+        obs = obs.double()
+        return obs + affine(obs, actions.double()) @ self.change
+
+    def terminates(self, next_obs: torch.Tensor) -> torch.Tensor:
+        """P(terminated | s'): (N, obs_dim) -> (N,)."""
+        return torch.sigmoid(quadratic(self.standardise(next_obs.double())) @ self.termination)
+
+    @torch.no_grad()
+    def __call__(self, obs: torch.Tensor, candidates: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        n, k = len(obs), len(candidates)
+        states, actions = obs.repeat_interleave(k, dim=0), candidates.double().reshape(k, -1).repeat(n, 1)
+        predicted = self.next_obs(states, actions)
+        alive = (1 - self.terminates(predicted)).float().unsqueeze(1)
+        rewards = (self.reward_features(predicted, actions) @ self.reward).float()
+        return (self.phi(predicted.float()) * alive).reshape(n, k, -1), rewards.reshape(n, k)
+
+
+def logistic(features: torch.Tensor, labels: torch.Tensor, l2: float = 1e-4, iterations: int = 200) -> torch.Tensor:
+    """Weights u of P(label 1) = sigmoid(features u) by L-BFGS on the mean log-loss + l2 ||u||^2: (N, f), (N,) -> (f,)."""
+    weights = torch.zeros(features.shape[1], dtype=features.dtype, requires_grad=True)
+    optimiser = torch.optim.LBFGS([weights], max_iter=iterations)
+
+    def loss() -> torch.Tensor:
+        optimiser.zero_grad()
+        value = torch.nn.functional.binary_cross_entropy_with_logits(features @ weights, labels) + l2 * weights.square().sum()
+        value.backward()
+        return value
+
+    with torch.enable_grad():
+        optimiser.step(loss)
+    return weights.detach()
+
+
+class CmeModel:
+    """The agent's own model: E_model[phi~(S')] read from psi (:meth:`CMEDynamics.read`) and its expected reward."""
+
+    def __init__(self, agent: CMEPolicyIteration) -> None:
+        self.dynamics = agent.dynamics
+
+    @torch.no_grad()
+    def __call__(self, obs: torch.Tensor, candidates: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        dynamics, n, k = self.dynamics, len(obs), len(candidates)
+        states, actions = obs.repeat_interleave(k, dim=0), candidates.repeat(n, *([1] * (candidates.dim() - 1)))
+        phi, psi = dynamics.phi(states), dynamics.features(states, actions)
+        predicted, _ = dynamics.read(phi, psi @ dynamics.readout())
+        return predicted.reshape(n, k, -1), dynamics.expected_reward(states, actions, phi, psi).reshape(n, k)
+
+
+@torch.no_grad()
+def plan(agent: CMEPolicyIteration, model: Model, states: torch.Tensor, rounds: int) -> torch.Tensor:
+    """Smoothed policy iteration on C through ``model``: (|C|, obs_dim) states -> (p,) value weights.
+
+    Each round: pi = greedy over the candidates of Q = r + gamma <w, E[phi~(S')]>, w_k by eq. (7)
+    at pi's actions, w <- (1 - omega) w + omega w_k.
+    """
+    next_phi, rewards = model(states, agent.policy.candidates)
+    phi, rows = agent.dynamics.phi(states), torch.arange(len(states))
+    weights = torch.zeros(phi.shape[1])
+    for _ in range(rounds):
+        pick = (rewards + agent.gamma * next_phi @ weights).argmax(dim=1)
+        w = bellman_residual_weights(phi, next_phi[rows, pick], rewards[rows, pick], agent.gamma, agent.evaluation_config.l2)
+        weights = (1 - agent.omega) * weights + agent.omega * w
+    return weights
+
+
+def greedy_rule(agent: CMEPolicyIteration, model: Model, weights: torch.Tensor) -> Callable[[np.ndarray], np.ndarray]:
+    """The action at one observation: the candidate of largest r + gamma <w, E[phi~(S')]> through ``model``."""
+    candidates = agent.policy.candidates
+
+    @torch.no_grad()
+    def act(obs: np.ndarray) -> np.ndarray:
+        next_phi, rewards = model(torch.as_tensor(obs, dtype=torch.float32)[None], candidates)
+        return candidates[int((rewards[0] + agent.gamma * next_phi[0] @ weights).argmax())].numpy()
+
+    return act
+
+
+@torch.no_grad()
+def fit_scores(model: ObservationModel, holdout: Transitions) -> dict[str, Any]:
+    """The observation model on held-out transitions: R^2 of the change per obs dim (dims that do
+    not change: nan) and the accuracy of P(terminated | s') > 1/2."""
+    moving = ~holdout.terminated
+    obs, next_obs = holdout.obs.double()[moving], holdout.next_obs.double()[moving]
+    actions = holdout.actions.double().reshape(len(holdout.obs), -1)[moving]
+    change = next_obs - obs
+    residual = model.next_obs(obs, actions) - next_obs
+    variance = change.var(dim=0)
+    r2 = torch.where(variance > 1e-12, 1 - residual.square().mean(dim=0) / variance.clamp_min(1e-12), float("nan"))
+    predicted = model.terminates(holdout.next_obs) > 0.5
+    return {"change_r2": r2.tolist(), "termination_accuracy": float((predicted == holdout.terminated).double().mean())}
+
+
+def measure(agent: CMEPolicyIteration, env_id: str, seed: int, episodes: int, collection: int, rounds: int) -> dict[str, Any]:
+    """The returns of the three modes (module docstring) and the observation model's held-out fit."""
+    data, holdout = (store.get(slice(0, len(store))) for store in (agent.store, agent.holdout))
+    rows = torch.randperm(len(data), generator=torch.Generator().manual_seed(seed))[:collection]
+    states = data.obs[rows]
+    observation = ObservationModel(agent, data.concat(holdout))
+    rules: dict[str, Callable[[np.ndarray], np.ndarray]] = {"agent": lambda obs: agent.predict(obs, deterministic=True)[0]}
+    for name, model in (("cme", CmeModel(agent)), ("observation", observation)):
+        rules[name] = greedy_rule(agent, model, plan(agent, model, states, rounds))
+    returns = {name: run_episodes(env_id, rule, episodes, seed, watch=0)[0]["return"] for name, rule in rules.items()}
+    return {"returns": returns, **fit_scores(ObservationModel(agent, data), holdout)}
+
+
+@dataclass(frozen=True)
+class Job:
+    """One seed: train ``env_id`` for ``steps`` env steps (constructor arguments ``kwargs``), then
+    plan on its data with each model; files under results/<stem>/."""
+
+    env_id: str
+    seed: int
+    steps: int
+    kwargs: dict[str, Any]
+    episodes: int
+    collection: int
+    rounds: int
+    stem: str
+
+    @property
+    def path(self) -> Path:
+        """results/<stem>/<env>_seed<k> (the model .zip, the record .json)."""
+        return RESULTS / self.stem / f"{self.env_id}_seed{self.seed}"
+
+
+def run_seed(job: Job) -> dict[str, Any]:
+    """Train (or load) one agent and measure it, or read the record of an earlier run."""
+    row = recorded_row(job, lambda agent: measure(agent, job.env_id, job.seed, job.episodes, job.collection, job.rounds))
+    print(job.env_id, job.seed, {mode: round(value, 1) for mode, value in row["returns"].items()}, flush=True)
+    return row
+
+
+def report(args: argparse.Namespace, rows: list[dict[str, Any]]) -> str:
+    """The markdown report: the return of each mode per seed, and the observation model's fit."""
+    table = [
+        [
+            row["seed"],
+            *(f"{row['returns'][mode]:.1f}" for mode in MODES),
+            f"{row['termination_accuracy']:.3f}",
+            ", ".join("-" if np.isnan(v) else f"{v:.2f}" for v in row["change_r2"]),
+        ]
+        for row in rows
+    ]
+    means = [f"{statistics.mean(row['returns'][mode] for row in rows):.1f}" for mode in MODES]
+    table.append(["mean", *means, "", ""])
+    return "\n".join(
+        [
+            f"# Planning on the agent's data through its model or a model of the observation: {args.env_id}\n",
+            f"Command: `{command_line()}`.\n",
+            f'`CMEPolicyIteration("CMEPolicy", {args.env_id!r}, seed=seed, **{json.loads(args.kwargs)})` trained for '
+            f"{args.steps} env steps, then {args.rounds} rounds of eq. (7) on {args.collection} stored states with each "
+            f"model and {args.episodes} episodes of each policy; seeds {args.seeds}. Definitions: the module docstring of "
+            "`benchmarks/diagnostics/observation_model.py`.\n",
+            markdown_table(
+                [
+                    "seed",
+                    *(f"return: {mode}" for mode in MODES),
+                    "termination accuracy",
+                    "held-out R^2 of the change per obs dim",
+                ],
+                table,
+            )
+            + "\n",
+        ]
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_episode_arguments(parser)
+    parser.add_argument("--collection", type=int, default=2000, help="states of C, drawn from the stored ones")
+    parser.add_argument("--rounds", type=int, default=30, help="rounds of evaluation and improvement")
+    args = parser.parse_args()
+    args.stem = args.stem or f"observation_model_{args.env_id}"
+    settings = (args.episodes, args.collection, args.rounds, args.stem)
+    jobs = [Job(args.env_id, seed, args.steps, json.loads(args.kwargs), *settings) for seed in args.seeds]
+    write_markdown(args.stem, report(args, map_seeds(run_seed, jobs, args.workers)))
+
+
+if __name__ == "__main__":
+    main()
