@@ -8,6 +8,7 @@ import functools
 import json
 import multiprocessing
 import os
+import platform
 import resource
 import shlex
 import statistics
@@ -18,6 +19,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
+import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
@@ -41,6 +43,19 @@ def command_line() -> str:
         program = [str(script.relative_to(ROOT) if script.is_relative_to(ROOT) else script)]
     command = " ".join(["python", *program, *(shlex.quote(a) for a in sys.argv[1:])])
     return f"{command}` at commit `{code_version()}"
+
+
+def machine() -> str:
+    """The CPU and the BLAS code path a run used: runs at one commit round differently, and so
+    differ from the first iteration, on CPUs whose MKL kernels differ (AVX2 against AVX-512)."""
+    try:
+        with open("/proc/cpuinfo") as cpuinfo:
+            model = next((line.split(":", 1)[1].strip() for line in cpuinfo if line.startswith("model name")), "")
+    except OSError:
+        model = ""
+    forced = os.environ.get("MKL_ENABLE_INSTRUCTIONS")
+    path = f"torch {torch.backends.cpu.get_cpu_capability()}" + (f", MKL_ENABLE_INSTRUCTIONS={forced}" if forced else "")
+    return f"{model or platform.processor() or 'unknown CPU'} ({path})"
 
 
 def code_version() -> str:

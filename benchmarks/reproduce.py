@@ -51,6 +51,7 @@ from benchmarks.common import (
     code_version,
     command_line,
     compose_config,
+    machine,
     markdown_table,
     pyplot,
     resident_bytes,
@@ -232,6 +233,7 @@ def execute(job: tuple[Run, Path]) -> str:
     record = {
         "run": asdict(run),
         "commit": code_version(),
+        "machine": machine(),
         "seconds": time.perf_counter() - start,
         "evaluations": evaluations,
         "iterations": log.rows,

@@ -64,6 +64,7 @@ from benchmarks.common import (
     RESULTS,
     code_version,
     command_line,
+    machine,
     markdown_table,
     pyplot,
     resident_bytes,
@@ -190,6 +191,7 @@ def run_job(job: Job) -> str:
     record: dict[str, Any] = {
         "job": asdict(job),
         "commit": code_version(),
+        "machine": machine(),
         "complete": False,
         "rss_before_agent_mib": resident_bytes() / MIB,
         "evaluations": [],
