@@ -361,12 +361,9 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             return self.selector.select(self.dynamics, new_data, self.store, self._torch_rng, self.logger)
 
     def model_update(self) -> None:
-        """The model update, eq. (6): B refit on a sample of D or SGD steps (:meth:`ModelTrainer.update`);
-        after a change of psi's learned metric planning restarts (Q and w belonged to the old psi)."""
+        """The model update, eq. (6): B refit on a sample of D or SGD steps (:meth:`ModelTrainer.update`)."""
         with self._timed("model_update"):
-            if self.trainer.update(self.dynamics, self.store, self.holdout, self._torch_rng, self.logger, self.iteration):
-                self.policy.restart()
-                self.evaluator.restart()
+            self.trainer.update(self.dynamics, self.store, self.holdout, self._torch_rng, self.logger, self.iteration)
 
     def draw_collection(self) -> torch.Tensor:
         """The collection C of eq. (7) (:meth:`PolicyEvaluator.draw_collection`): (|C|, obs_dim) states."""

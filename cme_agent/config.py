@@ -179,13 +179,6 @@ class ModelUpdateConfig:
         which ``train/model_loss`` is measured
     :param holdout_size: held-out transitions sampled per iteration to measure the loss
     :param feature_dynamics: regress phi(s') - phi(s) (section 2.3) instead of phi(s')
-    :param metric_every: iterations between fits of psi's metric, one length scale per state
-        dim, on the held-out loss of the model (:class:`~cme_agent.dynamics.metric.MetricFitter`);
-        0: never, isotropic kernels on the normalised box (the paper's)
-    :param metric_steps: gradient steps of each fit
-    :param metric_lr: Adam's step on the log length scales
-    :param metric_sample: transitions of D the fit's model is fitted on (as many again held out)
-    :param metric_features: features of psi (a random subset) the fit's model uses
     """
 
     method: str = "ridge"
@@ -197,11 +190,6 @@ class ModelUpdateConfig:
     holdout_fraction: float = 0.1
     holdout_size: int = 1000
     feature_dynamics: bool = True
-    metric_every: int = 0
-    metric_steps: int = 30
-    metric_lr: float = 0.1
-    metric_sample: int = 2000
-    metric_features: int = 256
 
     def __post_init__(self) -> None:
         check_choice("model_update.method", self.method, MODEL_UPDATE_METHODS)
@@ -219,16 +207,6 @@ class ModelUpdateConfig:
         check_non_negative("model_update.l2", self.l2)
         check_unit_interval("model_update.holdout_fraction", self.holdout_fraction, open_high=True)
         check_positive_int("model_update.holdout_size", self.holdout_size)
-        check(
-            "model_update.metric_every",
-            self.metric_every,
-            isinstance(self.metric_every, int) and not isinstance(self.metric_every, bool) and self.metric_every >= 0,
-            "an integer >= 0",
-        )
-        check_positive_int("model_update.metric_steps", self.metric_steps)
-        check_positive("model_update.metric_lr", self.metric_lr)
-        check_positive_int("model_update.metric_sample", self.metric_sample)
-        check_positive_int("model_update.metric_features", self.metric_features)
 
 
 MIN_COLLECTION_SIZE = 2000

@@ -7,8 +7,11 @@ import zipfile
 
 import numpy as np
 import pytest
+import torch
+from gymnasium import spaces
 
 from cme_agent import CMEPolicyIteration
+from cme_agent.dynamics import CMEDynamics
 from cme_agent.serialization import META
 
 
@@ -95,3 +98,11 @@ def test_saved_files_follow_the_umask(tmp_path, pendulum_kwargs, umask):
     for name in ("model.zip", "checkpoint.zip"):
         assert stat.S_IMODE((tmp_path / name).stat().st_mode) == 0o666 & ~umask, name
     assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint.zip", "model.zip"]  # no temporary left
+
+
+def test_a_model_saved_with_the_removed_learned_metric_loads_only_where_it_was_isotropic():
+    box = spaces.Box(np.full(2, -1.0, np.float32), np.full(2, 1.0, np.float32), dtype=np.float32)
+    dynamics = CMEDynamics(box, box, {"kind": "fourier", "max_width": 11})
+    dynamics.load_state_dict({**dynamics.state_dict(), "state_metric": torch.ones(2)})  # never fitted: the same kernels
+    with pytest.raises(ValueError, match="learned metric"):
+        dynamics.load_state_dict({**dynamics.state_dict(), "state_metric": torch.tensor([1.0, 2.0])})

@@ -107,7 +107,6 @@ class CMEDynamics(nn.Module):
         self.register_buffer(
             "action_scale", torch.tensor(1.0 if self.action_encoder.discrete else float(action_scale), dtype=torch.float64)
         )
-        self.register_buffer("state_metric", torch.ones(self.obs_encoder.dim))
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -131,17 +130,8 @@ class CMEDynamics(nn.Module):
         return torch.cat([self.encode_states(obs), self.encode_actions(actions)], dim=1)
 
     def encode_states(self, obs: torch.Tensor) -> torch.Tensor:
-        """z_s, the state part of psi's input: the observation normalised by its box, times
-        ``state_metric`` (one inverse length scale per dim, 1 until :meth:`set_state_metric`):
-        (N, obs_dim) -> (N, obs_dim)."""
-        return self.obs_encoder.normalize(obs).mul_(self.state_metric)
-
-    def set_state_metric(self, metric: torch.Tensor) -> None:
-        """Change psi's per-dim inverse length scales on the states, keeping every kernel's centre
-        in place in env units (:meth:`KernelBank.move_states`); B, whose inputs changed, must be
-        refit by the caller. :param metric: (obs_dim,) positive factors."""
-        self.psi.move_states(metric / self.state_metric, torch.zeros_like(metric))
-        self.state_metric.copy_(metric)
+        """z_s, the state part of psi's input: the observation normalised by its box: (N, obs_dim) -> (N, obs_dim)."""
+        return self.obs_encoder.normalize(obs)
 
     def encode_actions(self, actions: torch.Tensor) -> torch.Tensor:
         """z_a, the action part of psi's input: a Box action normalised to [-1, 1] times
@@ -270,7 +260,7 @@ class CMEDynamics(nn.Module):
         encoder = self.obs_encoder
         center, half_range = encoder.center.clone(), encoder.half_range.clone()
         message = encoder.expand(obs)
-        shift = (center - encoder.center) / encoder.half_range * self.state_metric
+        shift = (center - encoder.center) / encoder.half_range
         self.psi.move_states(half_range / encoder.half_range, shift)
         if self.phi.follows_data:
             message += "; " + self.phi.fit(torch.cat([obs, batch.obs, batch.next_obs]))
@@ -322,8 +312,12 @@ class CMEDynamics(nn.Module):
             state_dict[prefix + "reward_offset"] = torch.zeros_like(self.reward_offset)
         if prefix + "action_scale" not in state_dict:  # saved before the scale: the action entered psi unscaled
             state_dict[prefix + "action_scale"] = torch.ones_like(self.action_scale)
-        if prefix + "state_metric" not in state_dict:  # saved before the learned metric: isotropic kernels
-            state_dict[prefix + "state_metric"] = torch.ones_like(self.state_metric)
+        metric = state_dict.pop(prefix + "state_metric", None)  # files of the removed learned metric
+        if metric is not None and not torch.equal(metric, torch.ones_like(metric)):
+            raise ValueError(
+                "this model was saved with psi's learned metric (model_update.metric_every > 0), which the library no "
+                "longer has: its kernels would be read on the wrong length scales"
+            )
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     # ------------------------------------------------------------------ what planning reads

@@ -11,7 +11,6 @@ from stable_baselines3.common.logger import Logger
 from cme_agent.buffer import Transitions, TransitionStore
 from cme_agent.config import ModelUpdateConfig
 from cme_agent.dynamics.cme import CMEDynamics
-from cme_agent.dynamics.metric import MetricFitter
 
 DIVERGENCE_FACTOR = 10.0
 """An SGD update that multiplies the loss on a check batch by more than this is undone."""
@@ -19,8 +18,7 @@ DIVERGENCE_FACTOR = 10.0
 
 class ModelTrainer:
     """Owns how B is learned (``model_update``): the exact ridge refit on a fixed-size sample of
-    D or the paper's SGD steps, the guard against a diverging SGD step, the held-out loss, and
-    psi's learned metric (:class:`MetricFitter`, every ``metric_every`` iterations).
+    D or the paper's SGD steps, the guard against a diverging SGD step and the held-out loss.
 
     Every call touches a fixed-size sample of D (or only its new rows), so its cost is flat in |D|.
 
@@ -29,7 +27,6 @@ class ModelTrainer:
 
     def __init__(self, config: ModelUpdateConfig) -> None:
         self.config = config
-        self.metric = MetricFitter(config)
         self.step_scale = 1.0
         """Multiplier of ``learning_rate``, halved each time an SGD update diverged (saved with the agent)."""
 
@@ -52,8 +49,8 @@ class ModelTrainer:
         generator: torch.Generator,
         logger: Logger,
         iteration: int,
-    ) -> bool:
-        """Learn B on D, after fitting psi's metric where it is due: with ``method="ridge"`` the
+    ) -> None:
+        """Learn B on D: with ``method="ridge"`` the
         exact minimiser of loss (4) plus eq. (6)'s ridge on :meth:`refit_sample`; with ``"sgd"``
         ``n_steps`` minibatch steps of eq. (6).
         A diverging SGD update (non-finite B, or the loss on a check batch up tenfold) is undone
@@ -67,19 +64,14 @@ class ModelTrainer:
         :param holdout: the held-out transitions
         :param generator: the agent's torch RNG
         :param logger: SB3's logger
-        :param iteration: the iteration number, for the metric's schedule and the warning
-        :return: True when psi's metric changed: Q and w planned on the old psi are void
+        :param iteration: the iteration number, for the divergence warning
         """
         if dynamics.q == 0:
-            return False
-        moved = self.metric.due(iteration) and self.metric.fit(dynamics, store, holdout, generator, logger)
-        if moved and self.config.method == "sgd":  # SGD continues from B: refit it on the new psi first
-            dynamics.refit_weights(self.refit_sample(store, generator), self.config.l2)
+            return
         self.fit(dynamics, store, generator, logger, iteration)
         if len(holdout) > 0:
             psi, targets = dynamics.regression_data(holdout.sample(self.config.holdout_size, generator))
             logger.record("train/model_loss", float(dynamics.loss(psi, targets)))
-        return moved
 
     def fit(
         self, dynamics: CMEDynamics, store: TransitionStore, generator: torch.Generator, logger: Logger, iteration: int
