@@ -94,8 +94,19 @@ def test_collect_acts_within_the_bounds_and_goes_on_after_an_episode_ends() -> N
 
 def test_a_short_loop_evaluates_each_mode_at_each_plan(agent: CMEPolicyIteration, tmp_path) -> None:
     n = len(agent.store) + len(agent.holdout)
-    job = pil.Job("InvertedPendulum-v5", 0, 300, {}, ("observation",), (1, 2), n + 150, 100, 1, 500, 3, str(tmp_path))
+    job = pil.Job("InvertedPendulum-v5", 0, 300, {}, ("observation",), (1, 2), n + 150, 100, 1, 500, 0.5, 3, str(tmp_path))
     row = pil.measure(agent, job)
     assert row["steps"] == [n, n + 100, n + 150]
     assert set(row["returns"]) == {"observation d1", "observation d2"}
     assert all(len(values) == 3 and min(values) >= 1 for values in row["returns"].values())
+
+
+def test_the_collection_mixes_uniform_states_over_the_box_with_states_of_d(agent: CMEPolicyIteration) -> None:
+    data = agent.store.get(slice(0, len(agent.store)))
+    job = pil.Job("InvertedPendulum-v5", 0, 300, {}, ("observation",), (1,), 0, 0, 1, 200, 0.5, 1, "")
+    states = pil.collection(agent, data, job, torch.Generator().manual_seed(0))
+    assert states.shape == (200, data.obs.shape[1])
+    from_data = (states[:, None, :] == data.obs[None]).all(-1).any(-1)
+    assert int(from_data.sum()) == 100  # the uniform half lands on no stored state
+    box = agent.dynamics.obs_encoder
+    assert (box.normalize(states[:100]).abs() <= 1 + 1e-5).all()  # uniform draws lie in the box

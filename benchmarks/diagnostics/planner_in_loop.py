@@ -5,8 +5,10 @@ for ``--steps`` env steps; its transitions (stored and held out) are D, and the 
 gamma, omega, the candidate actions and its exploration noise. Then each mode (a model and a
 lookahead depth) starts from that same D and repeats, up to ``--until`` env steps:
 
-1. plan on D through the model: ``--rounds`` rounds of eq. (7) on ``--collection`` states drawn
-   from D, greedy over the candidates, smoothed by omega (:func:`observation_model.plan`);
+1. plan on D through the model: ``--rounds`` rounds of eq. (7) on a collection C of
+   ``--collection`` states, a ``--uniform`` share of them uniform over the agent's observation
+   box (known terminal states left out, as the agent's C) and the rest drawn from D, greedy over
+   the candidates, smoothed by omega (:func:`observation_model.plan`);
 2. evaluate the policy that looks ``depth`` steps ahead through the model: ``--episodes``
    episodes from the starts of action_robustness.py;
 3. act ``--every`` env steps with that policy, Gaussian noise of the agent's ``noise_std``
@@ -172,14 +174,24 @@ def run_mode(agent: CMEPolicyIteration, data: Transitions, job: Job, model_name:
     while True:
         step = simulator or observation_stepper(om.ObservationModel(agent, data))
         generator = torch.Generator().manual_seed(job.seed * 1_000 + len(returns))
-        states = data.obs[torch.randperm(len(data), generator=generator)[: job.collection]]
-        weights = om.plan(agent, as_model(agent, step), states, job.rounds)
+        weights = om.plan(agent, as_model(agent, step), collection(agent, data, job, generator), job.rounds)
         act = lookahead_rule(agent.dynamics.phi, step, candidates, weights, agent.gamma, depth)
         returns.append(run_episodes(job.env_id, act, job.episodes, job.seed, watch=0)[0]["return"])
         if len(data) >= job.until:
             return returns
         new, obs = collect(env, obs, act, min(job.every, job.until - len(data)), noise, rng)
         data = data.concat(new)
+
+
+def collection(agent: CMEPolicyIteration, data: Transitions, job: Job, generator: torch.Generator) -> torch.Tensor:
+    """C: (|C|, obs_dim) states, a ``job.uniform`` share uniform over the observation box (known
+    terminal states left out), the rest drawn from D without replacement."""
+    n_uniform = round(job.uniform * job.collection)
+    uniform = agent.dynamics.obs_encoder.sample_uniform(2 * n_uniform, generator)
+    if agent.dynamics.reward.is_terminal is not None:
+        uniform = uniform[~agent.dynamics.reward.is_terminal(uniform)]
+    from_data = data.obs[torch.randperm(len(data), generator=generator)[: job.collection - min(n_uniform, len(uniform))]]
+    return torch.cat([uniform[:n_uniform], from_data])
 
 
 def measure(agent: CMEPolicyIteration, job: Job) -> dict[str, Any]:
@@ -205,6 +217,7 @@ class Job:
     every: int
     episodes: int
     collection: int
+    uniform: float
     rounds: int
     stem: str
 
@@ -245,8 +258,8 @@ def report(args: argparse.Namespace, rows: list[dict[str, Any]]) -> str:
             f"# Planning in the loop through a model of the observation: {args.env_id}\n",
             f"Command: `{command_line()}`.\n",
             f'`CMEPolicyIteration("CMEPolicy", {args.env_id!r}, seed=seed, **{json.loads(args.kwargs)})` trained for '
-            f"{args.steps} env steps; then each mode plans ({args.rounds} rounds of eq. (7) on {args.collection} states "
-            f"of D), "
+            f"{args.steps} env steps; then each mode plans ({args.rounds} rounds of eq. (7) on {args.collection} states, "
+            f"a share {args.uniform:g} of them uniform over the box), "
             f"evaluates ({args.episodes} episodes) and acts {args.every} env steps, up to {args.until}; seeds {args.seeds}. "
             "Definitions: the module docstring of `benchmarks/diagnostics/planner_in_loop.py`.\n",
             markdown_table(
@@ -273,12 +286,22 @@ def main() -> None:
     parser.add_argument("--until", type=int, default=6000, help="env steps (training included) at which each loop stops")
     parser.add_argument("--every", type=int, default=1000, help="env steps acted between two plans")
     parser.add_argument("--collection", type=int, default=2000, help="states of C, drawn from D")
+    parser.add_argument("--uniform", type=float, default=0.0, help="share of C uniform over the observation box")
     parser.add_argument("--rounds", type=int, default=30, help="rounds of evaluation and improvement per plan")
     parser.add_argument("--late", type=int, default=3000, help="env steps from which evaluations are summarised")
     parser.add_argument("--target", type=float, default=950.0, help="the return counted in the summary")
     args = parser.parse_args()
     args.stem = args.stem or f"planner_in_loop_{args.env_id}"
-    settings = (tuple(args.models), tuple(args.depths), args.until, args.every, args.episodes, args.collection, args.rounds)
+    settings = (
+        tuple(args.models),
+        tuple(args.depths),
+        args.until,
+        args.every,
+        args.episodes,
+        args.collection,
+        args.uniform,
+        args.rounds,
+    )
     jobs = [Job(args.env_id, seed, args.steps, json.loads(args.kwargs), *settings, args.stem) for seed in args.seeds]
     write_markdown(args.stem, report(args, map_seeds(run_seed, jobs, args.workers)))
 
