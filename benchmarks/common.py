@@ -87,6 +87,20 @@ def markdown_table(header: list[str], rows: list[list[Any]]) -> str:
     return "\n".join(lines)
 
 
+class SeedFiles:
+    """Where a diagnostic's seed job keeps its files: a frozen job dataclass with ``env_id``,
+    ``seed`` and ``stem`` fields inherits :attr:`path`."""
+
+    env_id: str
+    seed: int
+    stem: str
+
+    @property
+    def path(self) -> Path:
+        """results/<stem>/<env>_seed<k>, without a suffix: the agent is its .zip, the record its .json."""
+        return RESULTS / self.stem / f"{self.env_id}_seed{self.seed}"
+
+
 def add_seed_arguments(parser: argparse.ArgumentParser, stem: str) -> None:
     """The arguments of a benchmark that trains one agent per seed and measures it: ``--seeds``,
     ``--steps``, ``--kwargs`` (constructor arguments as JSON), ``--workers`` and ``--stem``."""

@@ -32,14 +32,13 @@ import dataclasses
 import json
 import statistics
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 import torch
 
-from benchmarks.common import RESULTS, add_seed_arguments, command_line, map_seeds, markdown_table, write_markdown
+from benchmarks.common import SeedFiles, add_seed_arguments, command_line, map_seeds, markdown_table, write_markdown
 from benchmarks.diagnostics.gap_decomposition import (
     COLLECTION_SEED_OFFSET,
     Steps,
@@ -218,7 +217,7 @@ def measure(
 
 
 @dataclass(frozen=True)
-class Job:
+class Job(SeedFiles):
     """One seed: train ``env_id`` for ``steps`` env steps (constructor arguments ``kwargs``), then
     act on its Q in each mode; files under results/<stem>/."""
 
@@ -232,11 +231,6 @@ class Job:
     refine_steps: int
     offsets: tuple[float, ...]
     stem: str
-
-    @property
-    def path(self) -> Path:
-        """results/<stem>/<env>_seed<k> (the model .zip, the record .json)."""
-        return RESULTS / self.stem / f"{self.env_id}_seed{self.seed}"
 
 
 def run_seed(job: Job) -> dict[str, Any]:

@@ -90,7 +90,7 @@ import numpy as np
 import torch
 
 from benchmarks.common import (
-    RESULTS,
+    SeedFiles,
     add_seed_arguments,
     command_line,
     map_seeds,
@@ -718,7 +718,7 @@ def measure(agent: CMEPolicyIteration, job: Job) -> dict[str, Any]:
 
 
 @dataclass(frozen=True)
-class Job:
+class Job(SeedFiles):
     """One seed's run: train ``env_id`` with ``seed`` for ``steps`` env steps (constructor
     arguments ``kwargs``), then measure on ``collection`` states, the action set on ``states`` of
     them, the exact Q^pi on ``exact_states``, with ``rounds`` rounds of true policy iteration;
@@ -736,11 +736,6 @@ class Job:
     exact_episodes: int
     max_steps: int
     stem: str
-
-    @property
-    def path(self) -> Path:
-        """results/<stem>/<env>_seed<k>, without a suffix: the model is its .zip, the record its .json."""
-        return RESULTS / self.stem / f"{self.env_id}_seed{self.seed}"
 
 
 def recorded_row(job: Any, measure_agent: Callable[[CMEPolicyIteration], dict[str, Any]]) -> dict[str, Any]:

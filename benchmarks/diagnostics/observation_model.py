@@ -29,13 +29,12 @@ import json
 import statistics
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 import torch
 
-from benchmarks.common import RESULTS, command_line, map_seeds, markdown_table, write_markdown
+from benchmarks.common import SeedFiles, command_line, map_seeds, markdown_table, write_markdown
 from benchmarks.diagnostics.action_robustness import add_episode_arguments, run_episodes
 from benchmarks.diagnostics.gap_decomposition import recorded_row
 from cme_agent import CMEPolicyIteration
@@ -199,7 +198,7 @@ def measure(agent: CMEPolicyIteration, env_id: str, seed: int, episodes: int, co
 
 
 @dataclass(frozen=True)
-class Job:
+class Job(SeedFiles):
     """One seed: train ``env_id`` for ``steps`` env steps (constructor arguments ``kwargs``), then
     plan on its data with each model; files under results/<stem>/."""
 
@@ -211,11 +210,6 @@ class Job:
     collection: int
     rounds: int
     stem: str
-
-    @property
-    def path(self) -> Path:
-        """results/<stem>/<env>_seed<k> (the model .zip, the record .json)."""
-        return RESULTS / self.stem / f"{self.env_id}_seed{self.seed}"
 
 
 def run_seed(job: Job) -> dict[str, Any]:

@@ -36,14 +36,13 @@ import json
 import statistics
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, Protocol
 
 import gymnasium as gym
 import numpy as np
 import torch
 
-from benchmarks.common import RESULTS, command_line, map_seeds, markdown_table, write_markdown
+from benchmarks.common import SeedFiles, command_line, map_seeds, markdown_table, write_markdown
 from benchmarks.diagnostics import observation_model as om
 from benchmarks.diagnostics.action_robustness import add_episode_arguments, run_episodes
 from benchmarks.diagnostics.gap_decomposition import recorded_row
@@ -204,7 +203,7 @@ def measure(agent: CMEPolicyIteration, job: Job) -> dict[str, Any]:
 
 
 @dataclass(frozen=True)
-class Job:
+class Job(SeedFiles):
     """One seed: train for ``steps`` env steps, then every mode's loop up to ``until``; files under results/<stem>/."""
 
     env_id: str
@@ -220,11 +219,6 @@ class Job:
     uniform: float
     rounds: int
     stem: str
-
-    @property
-    def path(self) -> Path:
-        """results/<stem>/<env>_seed<k> (the agent .zip, the record .json)."""
-        return RESULTS / self.stem / f"{self.env_id}_seed{self.seed}"
 
 
 def run_seed(job: Job) -> dict[str, Any]:

@@ -31,14 +31,13 @@ import json
 import math
 import statistics
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 import torch
 
-from benchmarks.common import RESULTS, add_seed_arguments, command_line, map_seeds, markdown_table, write_markdown
+from benchmarks.common import SeedFiles, add_seed_arguments, command_line, map_seeds, markdown_table, write_markdown
 from benchmarks.diagnostics.gap_decomposition import (
     COLLECTION_SEED_OFFSET,
     best_phi_fit,
@@ -150,7 +149,7 @@ def measure(agent: CMEPolicyIteration, env_id: str, collection_size: int, seed: 
 
 
 @dataclass(frozen=True)
-class Job:
+class Job(SeedFiles):
     """One seed: train ``env_id`` for ``steps`` env steps (constructor arguments ``kwargs``), then
     measure on ``collection`` states; files under results/<stem>/."""
 
@@ -160,11 +159,6 @@ class Job:
     kwargs: dict[str, Any]
     collection: int
     stem: str
-
-    @property
-    def path(self) -> Path:
-        """results/<stem>/<env>_seed<k> (the model .zip, the record .json)."""
-        return RESULTS / self.stem / f"{self.env_id}_seed{self.seed}"
 
 
 def run_seed(job: Job) -> dict[str, Any]:
