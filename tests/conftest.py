@@ -9,8 +9,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import torch
 from stable_baselines3.common.callbacks import BaseCallback
 
+from cme_agent.buffer import Transitions
 from cme_agent.presets import preset_for
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -67,3 +69,14 @@ class CountingCallback(BaseCallback):
     def _on_step(self) -> bool:
         self.calls += 1
         return self.stop_after is None or self.calls < self.stop_after
+
+
+def linear_system(n: int, seed: int) -> Transitions:
+    """A linear system in 4 dims with one action, terminated where |s'_1| > 0.15 (both sides), reward 1 - s'_0^2;
+    s_0 and s_1 change by a constant."""
+    g = torch.Generator().manual_seed(seed)
+    obs = 0.1 * torch.randn(n, 4, generator=g)
+    actions = 2 * torch.rand(n, 1, generator=g) - 1
+    change = obs @ torch.tensor([[0.0, 0.0, 0.1, 0.0], [0.0, 0.0, 0.0, 0.1], [0.0, 0.0, 0.0, 0.3], [0.0, 0.0, 0.0, 0.0]])
+    next_obs = obs + change + actions * torch.tensor([0.0, 0.0, 0.05, -0.1]) + 0.01
+    return Transitions(obs, actions, 1 - next_obs[:, 0].square(), next_obs, next_obs[:, 1].abs() > 0.15)

@@ -1,15 +1,15 @@
-"""benchmarks/diagnostics/observation_model.py: the observation model's fits, the planner through
-a model, and the measurement of a briefly trained agent."""
+"""benchmarks/diagnostics/observation_model.py: the planner through a model, the CME model's
+reading, the observation model as the planner sees it, and the measurement of a briefly trained agent."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import torch
+from conftest import linear_system
 
 from benchmarks.diagnostics import observation_model as om
 from cme_agent import CMEPolicyIteration
-from cme_agent.buffer import Transitions
 
 pytest.importorskip("mujoco")
 
@@ -17,42 +17,6 @@ pytest.importorskip("mujoco")
 @pytest.fixture(scope="module")
 def agent() -> CMEPolicyIteration:
     return CMEPolicyIteration("CMEPolicy", "InvertedPendulum-v5", seed=0).learn(300)
-
-
-def synthetic(n: int, seed: int) -> Transitions:
-    """A linear system in 4 dims with one action, terminated where |s'_1| > 0.15 (both sides), reward 1 - s'_0^2."""
-    g = torch.Generator().manual_seed(seed)
-    obs = 0.1 * torch.randn(n, 4, generator=g)
-    actions = 2 * torch.rand(n, 1, generator=g) - 1
-    change = obs @ torch.tensor([[0.0, 0.0, 0.1, 0.0], [0.0, 0.0, 0.0, 0.1], [0.0, 0.0, 0.0, 0.3], [0.0, 0.0, 0.0, 0.0]])
-    next_obs = obs + change + actions * torch.tensor([0.0, 0.0, 0.05, -0.1]) + 0.01
-    return Transitions(obs, actions, 1 - next_obs[:, 0].square(), next_obs, next_obs[:, 1].abs() > 0.15)
-
-
-def test_the_observation_model_recovers_a_linear_system(agent: CMEPolicyIteration) -> None:
-    model = om.ObservationModel(agent, synthetic(2000, 0))
-    test = synthetic(500, 1)
-    actions = test.actions.double()
-    np.testing.assert_allclose(model.next_obs(test.obs, actions).numpy(), test.next_obs.double().numpy(), atol=1e-4)
-    # the reward is quadratic in s': the ridge on [s', s'^2, 1, a, a^2] holds it
-    rewards = model.reward_features(test.next_obs.double(), actions) @ model.reward
-    np.testing.assert_allclose(rewards.numpy(), test.rewards.double().numpy(), atol=1e-3)
-    scores = om.fit_scores(model, test)
-    assert np.isnan(scores["change_r2"][:2]).all()  # s_0 and s_1 change by a constant: no R^2
-    assert min(scores["change_r2"][2:]) > 0.999
-    assert scores["termination_accuracy"] > 0.95  # a two-sided boundary: the quadratic features carry it
-
-
-def test_a_two_sided_termination_needs_the_quadratic_features() -> None:
-    data = synthetic(2000, 2)
-    x = data.next_obs.double()
-    linear = om.logistic(torch.cat([x, torch.ones(len(x), 1, dtype=x.dtype)], dim=1), data.terminated.double())
-    both = om.logistic(om.quadratic(x / x.std(dim=0)), data.terminated.double())
-    accuracy_linear = (
-        ((torch.cat([x, torch.ones(len(x), 1, dtype=x.dtype)], 1) @ linear > 0) == data.terminated).double().mean()
-    )
-    accuracy_quadratic = ((om.quadratic(x / x.std(dim=0)) @ both > 0) == data.terminated).double().mean()
-    assert accuracy_quadratic > 0.97 > accuracy_linear + 0.05
 
 
 def test_the_planner_values_a_state_that_never_changes_at_its_discounted_reward(agent: CMEPolicyIteration) -> None:
@@ -99,3 +63,21 @@ def test_measure_reports_every_mode(agent: CMEPolicyIteration) -> None:
     assert len(row["change_r2"]) == 4
     assert min(row["change_r2"]) > 0.9  # InvertedPendulum's one step is close to linear in (s, a)
     assert 0.5 <= row["termination_accuracy"] <= 1
+
+
+def test_the_planners_view_of_the_observation_model_weighs_phi_by_going_on(agent: CMEPolicyIteration) -> None:
+    data = agent.store.get(slice(0, len(agent.store)))
+    model = om.fitted(agent, data)
+    states, candidates = data.obs[:4], agent.policy.candidates
+    next_phi, rewards = om.as_model(agent, model.step)(states, candidates)
+    next_obs, going_on, expected = model.step(states, candidates)
+    assert next_phi.shape == (4, len(candidates), agent.dynamics.p)
+    torch.testing.assert_close(next_phi[1, 2], agent.dynamics.phi(next_obs[1 * len(candidates) + 2][None])[0] * going_on[5])
+    torch.testing.assert_close(rewards.reshape(-1), expected)
+
+
+def test_fit_scores_give_each_dims_r2_and_the_termination_accuracy(agent: CMEPolicyIteration) -> None:
+    scores = om.fit_scores(om.fitted(agent, linear_system(2000, 0)), linear_system(500, 1))
+    assert np.isnan(scores["change_r2"][:2]).all()  # s_0 and s_1 change by a constant: no R^2
+    assert min(scores["change_r2"][2:]) > 0.999
+    assert scores["termination_accuracy"] > 0.95

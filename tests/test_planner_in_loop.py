@@ -55,11 +55,11 @@ def test_the_lookahead_stops_at_a_terminal_state() -> None:
 
 def test_depth_one_is_the_greedy_step_of_the_planner(agent: CMEPolicyIteration) -> None:
     data = agent.store.get(slice(0, len(agent.store)))
-    model = om.ObservationModel(agent, data)
-    step = pil.observation_stepper(model)
+    model = om.fitted(agent, data)
+    step = model.step
     weights = torch.randn(agent.dynamics.p, generator=torch.Generator().manual_seed(0))
     lookahead = pil.lookahead_rule(agent.dynamics.phi, step, agent.policy.candidates, weights, agent.gamma, 1)
-    greedy = om.greedy_rule(agent, model, weights)
+    greedy = om.greedy_rule(agent, om.as_model(agent, step), weights)
     for obs in data.obs[:20].numpy():
         np.testing.assert_array_equal(lookahead(obs), greedy(obs))
 

@@ -39,27 +39,10 @@ from benchmarks.diagnostics.action_robustness import add_episode_arguments, run_
 from benchmarks.diagnostics.gap_decomposition import recorded_row
 from cme_agent import CMEPolicyIteration
 from cme_agent.buffer import Transitions
+from cme_agent.dynamics.observation import ObservationModel
 from cme_agent.planning import bellman_residual_weights
 
 MODES = ("agent", "cme", "observation")
-RIDGE = 1e-6
-"""Ridge of the observation model's least-squares fits, relative to the number of rows."""
-
-
-def quadratic(x: torch.Tensor) -> torch.Tensor:
-    """[x, x^2, 1]: (N, d) -> (N, 2 d + 1)."""
-    return torch.cat([x, x.square(), torch.ones(len(x), 1, dtype=x.dtype)], dim=1)
-
-
-def affine(obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-    """[s, a, 1]: (N, obs_dim), (N, act_dim) -> (N, obs_dim + act_dim + 1)."""
-    return torch.cat([obs, actions, torch.ones(len(obs), 1, dtype=obs.dtype)], dim=1)
-
-
-def ridge(features: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
-    """argmin_W ||features W - targets||^2 + RIDGE n ||W||^2: (N, f), (N, ...) -> (f, ...)."""
-    gram = features.T @ features + RIDGE * len(features) * torch.eye(features.shape[1], dtype=features.dtype)
-    return torch.linalg.solve(gram, features.T @ targets)
 
 
 class Model(Protocol):
@@ -68,61 +51,29 @@ class Model(Protocol):
         ...
 
 
-class ObservationModel:
-    """s^' = s + W^T [s, a, 1]; P(terminated | s') and r(s', a) on quadratic features (module docstring).
+Stepper = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
+"""A model that predicts the next state: at (N, obs_dim) states and (K, act_dim) candidates, the next states
+(N K, obs_dim), the probability of going on (N K,) and the reward (N K,), state-major
+(:meth:`ObservationModel.step`)."""
 
-    :param agent: the agent whose phi reads the predicted states
-    :param data: the transitions it is fitted on (Box actions)
-    """
 
-    def __init__(self, agent: CMEPolicyIteration, data: Transitions) -> None:
-        self.phi = agent.dynamics.phi
-        obs, next_obs, actions = data.obs.double(), data.next_obs.double(), data.actions.double().reshape(len(data.obs), -1)
-        moving = ~data.terminated
-        self.change = ridge(affine(obs, actions)[moving], (next_obs - obs)[moving])  # (obs_dim + act_dim + 1, obs_dim)
-        self.mean, self.std = next_obs.mean(dim=0), next_obs.std(dim=0).clamp_min(1e-6)
-        self.reward = ridge(self.reward_features(next_obs, actions), data.rewards.double())
-        self.termination = logistic(quadratic(self.standardise(next_obs)), data.terminated.double())
+def fitted(agent: CMEPolicyIteration, data: Transitions) -> ObservationModel:
+    """The observation model of ``agent``'s spaces fitted on ``data``."""
+    model = ObservationModel(agent.observation_space.shape[0], agent.action_space.shape[0])
+    model.fit(data)
+    return model
 
-    def standardise(self, next_obs: torch.Tensor) -> torch.Tensor:
-        return (next_obs - self.mean) / self.std
 
-    def reward_features(self, next_obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        return torch.cat([quadratic(self.standardise(next_obs)), actions, actions.square()], dim=1)
-
-    def next_obs(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        """s^': (N, obs_dim), (N, act_dim) -> (N, obs_dim), float64."""
-        obs = obs.double()
-        return obs + affine(obs, actions.double()) @ self.change
-
-    def terminates(self, next_obs: torch.Tensor) -> torch.Tensor:
-        """P(terminated | s'): (N, obs_dim) -> (N,)."""
-        return torch.sigmoid(quadratic(self.standardise(next_obs.double())) @ self.termination)
+def as_model(agent: CMEPolicyIteration, step: Stepper) -> Model:
+    """The planner's view of a stepper: E[phi~(S')] = P(going on) phi(s^') (N, K, p) and the reward (N, K)."""
 
     @torch.no_grad()
-    def __call__(self, obs: torch.Tensor, candidates: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def model(obs: torch.Tensor, candidates: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        next_obs, going_on, rewards = step(obs, candidates)
         n, k = len(obs), len(candidates)
-        states, actions = obs.repeat_interleave(k, dim=0), candidates.double().reshape(k, -1).repeat(n, 1)
-        predicted = self.next_obs(states, actions)
-        alive = (1 - self.terminates(predicted)).float().unsqueeze(1)
-        rewards = (self.reward_features(predicted, actions) @ self.reward).float()
-        return (self.phi(predicted.float()) * alive).reshape(n, k, -1), rewards.reshape(n, k)
+        return (agent.dynamics.phi(next_obs) * going_on.unsqueeze(1)).reshape(n, k, -1), rewards.reshape(n, k)
 
-
-def logistic(features: torch.Tensor, labels: torch.Tensor, l2: float = 1e-4, iterations: int = 200) -> torch.Tensor:
-    """Weights u of P(label 1) = sigmoid(features u) by L-BFGS on the mean log-loss + l2 ||u||^2: (N, f), (N,) -> (f,)."""
-    weights = torch.zeros(features.shape[1], dtype=features.dtype, requires_grad=True)
-    optimiser = torch.optim.LBFGS([weights], max_iter=iterations)
-
-    def loss() -> torch.Tensor:
-        optimiser.zero_grad()
-        value = torch.nn.functional.binary_cross_entropy_with_logits(features @ weights, labels) + l2 * weights.square().sum()
-        value.backward()
-        return value
-
-    with torch.enable_grad():
-        optimiser.step(loss)
-    return weights.detach()
+    return model
 
 
 class CmeModel:
@@ -189,12 +140,12 @@ def measure(agent: CMEPolicyIteration, env_id: str, seed: int, episodes: int, co
     data, holdout = (store.get(slice(0, len(store))) for store in (agent.store, agent.holdout))
     rows = torch.randperm(len(data), generator=torch.Generator().manual_seed(seed))[:collection]
     states = data.obs[rows]
-    observation = ObservationModel(agent, data.concat(holdout))
+    observation = as_model(agent, fitted(agent, data.concat(holdout)).step)
     rules: dict[str, Callable[[np.ndarray], np.ndarray]] = {"agent": lambda obs: agent.predict(obs, deterministic=True)[0]}
     for name, model in (("cme", CmeModel(agent)), ("observation", observation)):
         rules[name] = greedy_rule(agent, model, plan(agent, model, states, rounds))
     returns = {name: run_episodes(env_id, rule, episodes, seed, watch=0)[0]["return"] for name, rule in rules.items()}
-    return {"returns": returns, **fit_scores(ObservationModel(agent, data), holdout)}
+    return {"returns": returns, **fit_scores(fitted(agent, data), holdout)}
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,7 @@ lookahead depth) starts from that same D and repeats, up to ``--until`` env step
 3. act ``--every`` env steps with that policy, Gaussian noise of the agent's ``noise_std``
    (in half-ranges) on every action, and add them to D.
 
-Models: ``observation`` (:class:`observation_model.ObservationModel`, refit on D at every round)
+Models: ``observation`` (:class:`cme_agent.dynamics.observation.ObservationModel`, refit on D at every round)
 or ``true`` (the simulator's step from the observation, with the env's reward and termination;
 envs whose observation is (qpos, qvel), e.g. InvertedPendulum-v5). The depth-d lookahead acts by
 the exhaustive search (K^d leaves per action) of
@@ -36,7 +36,7 @@ import json
 import statistics
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -52,26 +52,6 @@ from cme_agent.buffer import Transitions
 MODELS = ("observation", "true")
 LOOP_SEED_OFFSET = 30_000
 """The loop's own env is seeded seed + 30,000, apart from training and the evaluation's starts."""
-
-
-class Stepper(Protocol):
-    def __call__(self, obs: torch.Tensor, candidates: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """At (N, obs_dim) states and (K, act_dim) candidates: the next states (N K, obs_dim), the
-        probability of going on (N K,) and the reward (N K,), state-major."""
-        ...
-
-
-def observation_stepper(model: om.ObservationModel) -> Stepper:
-    """s^' = s + W^T [s, a, 1], 1 - P(terminated | s^') and r(s^', a) of the observation model."""
-
-    def step(obs: torch.Tensor, candidates: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        n, k = len(obs), len(candidates)
-        states, actions = obs.double().repeat_interleave(k, dim=0), candidates.double().reshape(k, -1).repeat(n, 1)
-        predicted = model.next_obs(states, actions)
-        alive, rewards = 1 - model.terminates(predicted), model.reward_features(predicted, actions) @ model.reward
-        return predicted.float(), alive.float(), rewards.float()
-
-    return step
 
 
 class SimulatorStepper:
@@ -99,20 +79,9 @@ class SimulatorStepper:
         return next_obs, 0.0 if terminated else 1.0, float(reward)
 
 
-def as_model(agent: CMEPolicyIteration, step: Stepper) -> om.Model:
-    """The planner's view of a stepper: E[phi~(S')] = P(going on) phi(s^') (N, K, p) and the reward (N, K)."""
-
-    def model(obs: torch.Tensor, candidates: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        next_obs, alive, rewards = step(obs, candidates)
-        n, k = len(obs), len(candidates)
-        return (agent.dynamics.phi(next_obs) * alive.unsqueeze(1)).reshape(n, k, -1), rewards.reshape(n, k)
-
-    return model
-
-
 def lookahead_rule(
     phi: Callable[[torch.Tensor], torch.Tensor],
-    step: Stepper,
+    step: om.Stepper,
     candidates: torch.Tensor,
     weights: torch.Tensor,
     gamma: float,
@@ -171,9 +140,9 @@ def run_mode(agent: CMEPolicyIteration, data: Transitions, job: Job, model_name:
     noise, candidates, returns = agent.exploration_config.noise_std, agent.policy.candidates, []
     simulator = SimulatorStepper(job.env_id) if model_name == "true" else None
     while True:
-        step = simulator or observation_stepper(om.ObservationModel(agent, data))
+        step = simulator or om.fitted(agent, data).step
         generator = torch.Generator().manual_seed(job.seed * 1_000 + len(returns))
-        weights = om.plan(agent, as_model(agent, step), collection(agent, data, job, generator), job.rounds)
+        weights = om.plan(agent, om.as_model(agent, step), collection(agent, data, job, generator), job.rounds)
         act = lookahead_rule(agent.dynamics.phi, step, candidates, weights, agent.gamma, depth)
         returns.append(run_episodes(job.env_id, act, job.episodes, job.seed, watch=0)[0]["return"])
         if len(data) >= job.until:

@@ -1,0 +1,127 @@
+"""A model of the observation itself, the alternative to the CME that planning by lookahead needs.
+
+The CME predicts E[phi(S') | s, a], never S' itself, so it cannot be rolled forward. This model
+predicts the next observation, whether the episode goes on and the reward:
+
+- s^' = s + W^T [s, a, 1], W by ridge regression on the non-terminal transitions;
+- P(terminated | s') = sigmoid(u^T f(s')), f = [z, z^2, 1] of the standardised s' (a two-sided
+  boundary such as |angle| > 0.2 needs the squares), u by L2-regularised logistic regression;
+- r(s', a) = v^T [f(s'), a, a^2], v by ridge regression.
+
+Every fit is a fixed-size linear solve (or a few L-BFGS steps) in its feature count: the cost is
+linear in the transitions it is given, and the weights are buffers (saved with the module).
+Box actions only.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from cme_agent.buffer import Transitions
+
+RIDGE = 1e-6
+"""Ridge of the least-squares fits, relative to the number of rows."""
+LOGISTIC_L2 = 1e-4
+"""L2 weight of the termination's logistic regression (on the mean log-loss)."""
+LOGISTIC_ITERATIONS = 200
+"""L-BFGS iterations of the termination's fit."""
+
+
+def quadratic(x: torch.Tensor) -> torch.Tensor:
+    """[x, x^2, 1]: (N, d) -> (N, 2 d + 1)."""
+    return torch.cat([x, x.square(), torch.ones(len(x), 1, dtype=x.dtype)], dim=1)
+
+
+def affine(obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+    """[s, a, 1]: (N, obs_dim), (N, act_dim) -> (N, obs_dim + act_dim + 1)."""
+    return torch.cat([obs, actions, torch.ones(len(obs), 1, dtype=obs.dtype)], dim=1)
+
+
+def ridge(features: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+    """argmin_W ||features W - targets||^2 + RIDGE n ||W||^2: (N, f), (N, ...) -> (f, ...)."""
+    gram = features.T @ features + RIDGE * len(features) * torch.eye(features.shape[1], dtype=features.dtype)
+    return torch.linalg.solve(gram, features.T @ targets)
+
+
+def logistic(features: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+    """Weights u of P(label 1) = sigmoid(features u), by L-BFGS on the mean log-loss + LOGISTIC_L2 ||u||^2:
+    (N, f), (N,) -> (f,)."""
+    weights = torch.zeros(features.shape[1], dtype=features.dtype, requires_grad=True)
+    optimiser = torch.optim.LBFGS([weights], max_iter=LOGISTIC_ITERATIONS)
+
+    def loss() -> torch.Tensor:
+        optimiser.zero_grad()
+        value = torch.nn.functional.binary_cross_entropy_with_logits(features @ weights, labels)
+        value = value + LOGISTIC_L2 * weights.square().sum()
+        value.backward()
+        return value
+
+    with torch.enable_grad():
+        optimiser.step(loss)
+    return weights.detach()
+
+
+class ObservationModel(nn.Module):
+    """s^' = s + W^T [s, a, 1]; P(terminated | s') and r(s', a) on quadratic features (module docstring).
+
+    :param obs_dim: the observation's dims
+    :param act_dim: the Box action's dims
+    """
+
+    def __init__(self, obs_dim: int, act_dim: int) -> None:
+        super().__init__()
+        self.obs_dim, self.act_dim = obs_dim, act_dim
+        state_features = 2 * obs_dim + 1
+        self.register_buffer("change", torch.zeros(obs_dim + act_dim + 1, obs_dim, dtype=torch.float64))
+        self.register_buffer("mean", torch.zeros(obs_dim, dtype=torch.float64))
+        self.register_buffer("std", torch.ones(obs_dim, dtype=torch.float64))
+        self.register_buffer("reward_weights", torch.zeros(state_features + 2 * act_dim, dtype=torch.float64))
+        self.register_buffer("termination", torch.zeros(state_features, dtype=torch.float64))
+
+    def fit(self, data: Transitions) -> None:
+        """Fit W, the standardisation of s', v and u on ``data`` (Box actions (N, act_dim)), in float64."""
+        obs, next_obs = data.obs.double(), data.next_obs.double()
+        actions = data.actions.double().reshape(len(obs), self.act_dim)
+        going_on = ~data.terminated
+        self.change.copy_(ridge(affine(obs, actions)[going_on], (next_obs - obs)[going_on]))
+        self.mean.copy_(next_obs.mean(dim=0))
+        self.std.copy_(next_obs.std(dim=0).clamp_min(1e-6))
+        self.reward_weights.copy_(ridge(self.reward_features(next_obs, actions), data.rewards.double()))
+        self.termination.copy_(logistic(quadratic(self.standardise(next_obs)), data.terminated.double()))
+
+    def standardise(self, next_obs: torch.Tensor) -> torch.Tensor:
+        """z = (s' - mean) / std: (N, obs_dim) -> (N, obs_dim)."""
+        return (next_obs - self.mean) / self.std
+
+    def reward_features(self, next_obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """[z, z^2, 1, a, a^2]: (N, obs_dim), (N, act_dim) -> (N, 2 obs_dim + 1 + 2 act_dim)."""
+        return torch.cat([quadratic(self.standardise(next_obs)), actions, actions.square()], dim=1)
+
+    def next_obs(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """s^': (N, obs_dim), (N, act_dim) -> (N, obs_dim), float64."""
+        obs = obs.double()
+        return obs + affine(obs, actions.double()) @ self.change
+
+    def terminates(self, next_obs: torch.Tensor) -> torch.Tensor:
+        """P(terminated | s'): (N, obs_dim) -> (N,), float64."""
+        return torch.sigmoid(quadratic(self.standardise(next_obs.double())) @ self.termination)
+
+    def reward(self, next_obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """r(s', a): (N, obs_dim), (N, act_dim) -> (N,), float64."""
+        return self.reward_features(next_obs.double(), actions.double()) @ self.reward_weights
+
+    @torch.no_grad()
+    def step(self, obs: torch.Tensor, candidates: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Every state with every candidate, state-major: the next observations (N K, obs_dim), the
+        probability of going on (N K,) and the reward (N K,), float32.
+
+        :param obs: (N, obs_dim) observations
+        :param candidates: (K, act_dim) Box actions
+        """
+        n, k = len(obs), len(candidates)
+        states = obs.double().repeat_interleave(k, dim=0)
+        actions = candidates.double().reshape(k, self.act_dim).repeat(n, 1)
+        predicted = self.next_obs(states, actions)
+        going_on, rewards = 1 - self.terminates(predicted), self.reward(predicted, actions)
+        return predicted.float(), going_on.float(), rewards.float()
