@@ -7,10 +7,10 @@ from the starts of action_robustness.py):
 
 - ``agent``: the agent as trained;
 - ``cme``: the agent's own model, E_model[phi~(S') | s, a] and the expected reward read from psi;
-- ``observation``: a model of the observation: the change s' - s linear in [s, a, 1] (least
-  squares), P(terminated | s') by logistic regression and the reward by ridge regression on
-  quadratic features of the standardised s' (and a, for the reward), so that
-  E[phi~(S')] ~ (1 - P(terminated | s^')) phi(s^') at the predicted s^'.
+- ``observation``: a model of the observation (:class:`cme_agent.dynamics.observation.ObservationModel`:
+  the change s' - s linear in [s, a, 1], P(terminated | s') by logistic regression and the
+  reward by ridge regression on quadratic features of s'), so that
+  E[phi~(S')] ~ (1 - P(terminated | s^')) phi(s^') at the predicted s^' (:func:`as_model`).
 
 The planner, the same for both models: C is ``--collection`` states drawn from the stored ones;
 ``--rounds`` rounds of eq. (7) on C, each greedy over the agent's candidates, the value weights
