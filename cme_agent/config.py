@@ -154,6 +154,8 @@ class FeatureSelectionConfig:
 MODEL_UPDATE_L2 = {"sgd": 1e-6, "ridge": 1e-4}
 """How B is learned each iteration (``model_update.method``), and the default ridge of each."""
 MODEL_UPDATE_METHODS = tuple(MODEL_UPDATE_L2)
+MODEL_KINDS = ("cme", "observation")
+"""What the agent models (``model_update.kind``): the paper's CME of phi, or the observation itself."""
 
 
 @dataclass(frozen=True)
@@ -179,6 +181,11 @@ class ModelUpdateConfig:
         which ``train/model_loss`` is measured
     :param holdout_size: held-out transitions sampled per iteration to measure the loss
     :param feature_dynamics: regress phi(s') - phi(s) (section 2.3) instead of phi(s')
+    :param kind: ``"cme"`` (the paper's model, E[phi(S') | s, a] ~ B psi(s, a), with ``method``)
+        or ``"observation"`` (the next observation, termination and reward,
+        :class:`~cme_agent.dynamics.observation.ObservationModel`, refit each iteration on
+        ``refit_size`` transitions of D; it can be rolled forward, so acting looks
+        ``action_search.lookahead_depth`` steps ahead, :class:`~cme_agent.lookahead.LookaheadPlanner`)
     """
 
     method: str = "ridge"
@@ -190,9 +197,11 @@ class ModelUpdateConfig:
     holdout_fraction: float = 0.1
     holdout_size: int = 1000
     feature_dynamics: bool = True
+    kind: str = "cme"
 
     def __post_init__(self) -> None:
         check_choice("model_update.method", self.method, MODEL_UPDATE_METHODS)
+        check_choice("model_update.kind", self.kind, MODEL_KINDS)
         check_positive_int("model_update.refit_size", self.refit_size)
         if self.l2 is None:  # frozen: the method's ridge is written in once, so the config says what ran
             object.__setattr__(self, "l2", MODEL_UPDATE_L2[self.method])
@@ -400,6 +409,9 @@ class ActionSearchConfig:
     :param n_samples: uniformly sampled candidates (fixed at construction) in higher dimensions
     :param refine_steps: projected gradient-ascent steps on Q through psi from the best candidate
     :param refine_lr: step of the refinement, in normalised action units
+    :param lookahead_depth: env steps the action looks ahead through the model of the
+        observation (``model_update.kind="observation"`` only; 1: greedy on Q); None: 3 where
+        the K^3 leaves of K candidates are at most 1,000, else 1
     """
 
     # 3 per dim (full push either way, or none): the greedy step ranks far-apart actions, where the
@@ -411,6 +423,7 @@ class ActionSearchConfig:
     n_samples: int = 256
     refine_steps: int = 0
     refine_lr: float = 0.05
+    lookahead_depth: int | None = None
 
     def __post_init__(self) -> None:
         check(
@@ -437,6 +450,8 @@ class ActionSearchConfig:
             "an integer >= 0",
         )
         check_positive("action_search.refine_lr", self.refine_lr)
+        if self.lookahead_depth is not None:
+            check_positive_int("action_search.lookahead_depth", self.lookahead_depth)
 
 
 @dataclass(frozen=True)

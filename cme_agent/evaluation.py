@@ -63,7 +63,8 @@ class PolicyEvaluator:
         """Eq. (7): w minimising ``||Phi_C w - (r + gamma Phi'_C w)||^2`` plus a ridge, with
         ``Phi'_C`` the model's expected next phi at the policy's actions. A soft policy is
         evaluated in expectation over the candidates: ``Phi'_C = sum_a pi(a|s) E_model[phi~(S') | s, a]``
-        and the rewards likewise (both linear in psi, read at E_pi[psi(s, A)]).
+        and the rewards likewise (both linear in psi, read at E_pi[psi(s, A)]). With the model of
+        the observation, :meth:`LookaheadPlanner.evaluate <cme_agent.lookahead.LookaheadPlanner.evaluate>`.
 
         Logs ``train/bellman_residual``, ``train/q_mean``, ``train/value_mean`` and, for a soft
         policy, ``train/policy_entropy`` and ``train/inverse_temperature``.
@@ -74,6 +75,9 @@ class PolicyEvaluator:
         :return: (p,) value weights w, V(s) = <w, phi(s)>
         """
         config, dynamics = self.config, policy.dynamics
+        if policy.lookahead is not None:
+            self.value_weights = policy.lookahead.evaluate(dynamics.phi, states, policy.candidates, config.l2, logger)
+            return self.value_weights
         factored = self.factored(dynamics, len(states))
         step = _policy_step(policy, states, None if factored else dynamics.readout(), logger)
         if factored:  # psi (|C|, q) is kept instead of Phi'_C (|C|, p); A A^T comes from phi's Gram matrix

@@ -34,6 +34,7 @@ from cme_agent.action_search import projected_ascent
 from cme_agent.config import ActionSearchConfig, EvaluationConfig, ImprovementConfig, ObservationConfig, build_config
 from cme_agent.dynamics.cme import CMEDynamics, PhiSpec
 from cme_agent.kernel_bank import kernel_from_points, kernel_points, resize_buffers
+from cme_agent.lookahead import LookaheadPlanner, default_depth
 from cme_agent.planning import action_spread, expected_candidate_features, smooth, softmax_policy
 from cme_agent.rewards import RewardSpec
 
@@ -109,6 +110,9 @@ class CMEPolicy(BasePolicy):
     :param evaluation: the evaluation settings, for the memory check of phi (None: defaults)
     :param improvement: the improvement step (:class:`ImprovementConfig` or dict; None: the
         paper's smoothed greedy step)
+    :param model_kind: ``model_update.kind``: ``"observation"`` plans and acts through a
+        :class:`~cme_agent.lookahead.LookaheadPlanner` (the submodule ``lookahead``) instead of Q's weights
+    :param gamma: the discount factor the lookahead acts with (``model_kind="observation"``)
     """
 
     def __init__(
@@ -125,6 +129,8 @@ class CMEPolicy(BasePolicy):
         evaluation: EvaluationConfig | None = None,
         improvement: ImprovementConfig | dict[str, Any] | None = None,
         action_scale: float = 1.0,
+        model_kind: str = "cme",
+        gamma: float = 0.95,
     ) -> None:
         super().__init__(observation_space, action_space, squash_output=False)
         self.phi_spec = phi
@@ -155,6 +161,28 @@ class CMEPolicy(BasePolicy):
         self.register_buffer("candidates", self._make_candidates())
         self._candidate_factor: tuple[tuple[int, int], torch.Tensor] | None = None
         self._weighted_candidates: tuple[torch.Tensor, tuple[int, int], torch.Tensor] | None = None
+        self.model_kind, self.gamma = model_kind, gamma
+        self.lookahead = self._make_lookahead(reward)
+
+    def _make_lookahead(self, reward: RewardSpec | None) -> LookaheadPlanner | None:
+        """The planner through the model of the observation, or None with the CME."""
+        depth, search = self.action_search.lookahead_depth, self.action_search
+        if self.model_kind != "observation":
+            if depth not in (None, 1):
+                raise ValueError(
+                    f"action_search.lookahead_depth={depth} is invalid with model_update.kind={self.model_kind!r}: "
+                    "looking ahead needs the model of the observation (model_update.kind='observation')"
+                )
+            return None
+        if self.soft or search.refine_steps > 0:
+            setting = "improvement.method='soft'" if self.soft else f"action_search.refine_steps={search.refine_steps}"
+            raise ValueError(
+                f"{setting} is invalid with model_update.kind='observation': it acts by lookahead over the fixed "
+                "candidates with the smoothed greedy step"
+            )
+        depth = default_depth(len(self.candidates)) if depth is None else depth
+        obs_dim = self.observation_space.shape[0]
+        return LookaheadPlanner(obs_dim, self.action_space, self.dynamics.p, depth, self.gamma, reward)
 
     def _make_candidates(self) -> torch.Tensor:
         """Candidate actions in env units: all Discrete actions (K,), or a Box grid / sample (K, act_dim)."""
@@ -187,6 +215,8 @@ class CMEPolicy(BasePolicy):
             feature_dynamics=self.dynamics.feature_dynamics,
             improvement=self.improvement,
             action_scale=float(self.dynamics.action_scale),
+            model_kind=self.model_kind,
+            gamma=self.gamma,
         )
         return data
 
@@ -400,7 +430,10 @@ class CMEPolicy(BasePolicy):
         return self.candidates[torch.multinomial(self.probabilities(obs), 1).squeeze(1)]
 
     def _act(self, obs: torch.Tensor, deterministic: bool) -> torch.Tensor:
-        """The greedy action, or with the soft improvement and ``deterministic=False`` a draw from pi."""
+        """The greedy action (by lookahead through the model of the observation with that model),
+        or with the soft improvement and ``deterministic=False`` a draw from pi."""
+        if self.lookahead is not None:
+            return self.lookahead.act(self.dynamics.phi, obs, self.candidates)
         return self.sample(obs) if self.soft and not deterministic else self.act(obs)
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> torch.Tensor:
@@ -446,6 +479,8 @@ class CMEPolicy(BasePolicy):
         self.theta_psi = self.theta_psi.new_zeros(0)
         self.improvements.zero_()
         self.inverse_temperature.zero_()
+        if self.lookahead is not None:
+            self.lookahead.restart()
 
     def improve(self, value_weights: torch.Tensor, gamma: float, omega: float, states: torch.Tensor | None = None) -> None:
         """Policy improvement on the linear weights of Q, with
@@ -454,7 +489,8 @@ class CMEPolicy(BasePolicy):
         - smoothed greedy (section 2.2): Q_k = (1 - omega) Q_{k-1} + omega Q^_k; pi_{k+1} = greedy(Q_k);
         - soft (KL-regularised): n_k = decay n_{k-1} + 1, Qbar_k = Qbar_{k-1} + (Q^_k - Qbar_{k-1}) / n_k,
           so the running sum n_k Qbar_k = sum_j decay^{k-j} Q^_j, zero-padded as psi grows;
-          pi_{k+1} = softmax(beta_k Qbar_k) (:meth:`soft_step`).
+          pi_{k+1} = softmax(beta_k Qbar_k) (:meth:`soft_step`);
+        - through the model of the observation: w itself is smoothed (:meth:`LookaheadPlanner.improve`).
 
         :param value_weights: (p,) w_k from policy evaluation (eq. (7))
         :param gamma: discount factor
@@ -462,6 +498,9 @@ class CMEPolicy(BasePolicy):
         :param states: (N, obs_dim) states where the spread of Qbar_k over the candidates is
             measured (soft only: the collection C; an even stride of :data:`SPREAD_STATES` of them is used)
         """
+        if self.lookahead is not None:  # the value weights themselves are smoothed: acting looks ahead on V
+            self.lookahead.improve(value_weights, omega)
+            return
         theta_phi, theta_psi = self.dynamics.backup_weights(value_weights, gamma)
         if not self.soft:
             self.theta_phi = smooth(self.theta_phi, theta_phi, omega)

@@ -32,6 +32,8 @@ SET_BY_THE_AGENT = {
     "reward": "reward_fn=...",
     "evaluation": "evaluation=...",
     "improvement": "improvement=...",
+    "model_kind": "model_update={'kind': ...}",
+    "gamma": "gamma=...",
 }
 """Arguments of :class:`~cme_agent.policy.CMEPolicy` that the agent passes itself, and where a user sets them."""
 

@@ -1,0 +1,168 @@
+"""Planning and acting through a model of the observation (``model_update.kind="observation"``).
+
+The CME predicts E[phi(S') | s, a], which cannot be rolled forward; the
+:class:`~cme_agent.dynamics.observation.ObservationModel` predicts s^' itself, whether the
+episode goes on (g = 1 - P(terminated | s^')) and the reward. Through it:
+
+- policy evaluation is eq. (7) with ``E[phi~(S') | s, a] = g phi(s^')`` at the greedy candidate,
+  ``a = argmax_a r + gamma g <w, phi(s^')>`` under the current (smoothed) w;
+- improvement smooths the value weights, w_k = (1 - omega) w_{k-1} + omega w^_k (section 2.2 on V);
+- acting looks d steps ahead over the K candidates (K^d leaves) with V = <w, phi> at the leaves:
+  ``L_0(s) = <w, phi(s)>, L_d(s) = max_a [r(s, a) + gamma g(s^'_a) L_{d-1}(s^'_a)]``; d = 1 is the
+  greedy step. Greedy acting on eq. (7)'s value is fragile where three looked-ahead steps are not
+  (docs/results.md, the planner in the loop).
+
+A known reward (:class:`~cme_agent.rewards.RewardSpec`) replaces the learned one, and its
+``is_terminal`` the learned termination. Discrete actions enter the model one-hot.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import torch
+from gymnasium import spaces
+from stable_baselines3.common.logger import Logger
+from torch import nn
+
+from cme_agent.buffer import Transitions
+from cme_agent.dynamics.observation import ObservationModel
+from cme_agent.planning import bellman_residual_rms, bellman_residual_weights, smooth
+from cme_agent.rewards import RewardSpec
+
+MAX_LEAVES = 1000
+"""Largest K^d of the default lookahead depth (:func:`default_depth`)."""
+DEFAULT_DEPTH = 3
+"""The default lookahead depth where its K^d leaves are at most :data:`MAX_LEAVES`."""
+BLOCK_ROWS = 4096
+"""Next states whose phi is built at once (phi (rows, p) in float32 at p = 1,000: 16 MiB)."""
+
+FeatureMap = Callable[[torch.Tensor], torch.Tensor]
+"""phi: (N, obs_dim) -> (N, p)."""
+
+
+def default_depth(n_candidates: int) -> int:
+    """:data:`DEFAULT_DEPTH` where ``n_candidates ** DEFAULT_DEPTH <= MAX_LEAVES``, else 1 (greedy)."""
+    return DEFAULT_DEPTH if n_candidates**DEFAULT_DEPTH <= MAX_LEAVES else 1
+
+
+def blocked_values(phi: FeatureMap, states: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """<w, phi(s)> at many states, phi built :data:`BLOCK_ROWS` rows at a time: (M, obs_dim) -> (M,)."""
+    return torch.cat([phi(states[start : start + BLOCK_ROWS]) @ weights for start in range(0, len(states), BLOCK_ROWS)])
+
+
+class LookaheadPlanner(nn.Module):
+    """The model of the observation, the value weights w and the procedures that use them (module docstring).
+
+    :param obs_dim: the observation's dims
+    :param action_space: a 1-D Box or a Discrete
+    :param width: p, the width of phi
+    :param depth: d >= 1, env steps acting looks ahead
+    :param gamma: discount factor of planning and acting
+    :param reward: the known reward (None: the model's learned reward and termination)
+    """
+
+    def __init__(
+        self, obs_dim: int, action_space: spaces.Space, width: int, depth: int, gamma: float, reward: RewardSpec | None
+    ) -> None:
+        super().__init__()
+        if depth < 1:
+            raise ValueError(f"lookahead depth={depth} is invalid: must be >= 1")
+        self.n_actions = int(action_space.n) if isinstance(action_space, spaces.Discrete) else None
+        self.model = ObservationModel(obs_dim, self.n_actions or int(action_space.shape[0]))
+        self.register_buffer("value_weights", torch.zeros(width))
+        self.depth, self.gamma, self.reward_spec = depth, gamma, reward
+
+    def model_actions(self, actions: torch.Tensor) -> torch.Tensor:
+        """Actions as the model reads them: Box (N, act_dim) as they are, Discrete (N,) one-hot (N, n), float64."""
+        if self.n_actions is None:
+            return actions.double().reshape(len(actions), -1)
+        return nn.functional.one_hot(actions.long(), self.n_actions).double()
+
+    def fit(self, data: Transitions, holdout: Transitions | None = None, logger: Logger | None = None) -> None:
+        """Refit the model on ``data`` (a fixed-size sample of D: the cost is flat in |D|), and log
+        its :meth:`holdout_error` on ``holdout`` as ``train/model_loss``."""
+        self.model.fit(dataclasses.replace(data, actions=self.model_actions(data.actions)))
+        if holdout is not None and logger is not None:
+            logger.record("train/model_loss", self.holdout_error(holdout))
+
+    @torch.no_grad()
+    def holdout_error(self, data: Transitions) -> float:
+        """Mean squared error of s^' on the non-terminal transitions of ``data``, per dim in units of s''s std."""
+        going_on = ~data.terminated
+        predicted = self.model.next_obs(data.obs[going_on], self.model_actions(data.actions[going_on]))
+        return float(((predicted - data.next_obs[going_on].double()) / self.model.std).square().mean())
+
+    @torch.no_grad()
+    def step(self, obs: torch.Tensor, candidates: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Every state with every candidate, state-major: s^' (N K, obs_dim), g = P(going on) (N K,)
+        and the reward (N K,), float32; the known reward and termination where given.
+
+        :param obs: (N, obs_dim) observations
+        :param candidates: (K, act_dim) Box actions or (K,) Discrete indices, env units
+        """
+        next_obs, going_on, rewards = self.model.step(obs, self.model_actions(candidates))
+        spec = self.reward_spec
+        if spec is not None:
+            if spec.is_terminal is not None:
+                going_on = (~spec.is_terminal(next_obs)).float()
+            n, k = len(obs), len(candidates)
+            actions = candidates.repeat(n, *([1] * (candidates.dim() - 1)))
+            rewards = spec.step_reward(obs.float().repeat_interleave(k, dim=0), actions).float()
+            rewards = rewards + spec.terminal_bonus * (1 - going_on)
+        return next_obs, going_on, rewards
+
+    @torch.no_grad()
+    def evaluate(
+        self, phi: FeatureMap, states: torch.Tensor, candidates: torch.Tensor, l2: float, logger: Logger
+    ) -> torch.Tensor:
+        """Eq. (7) through the model at the greedy candidates of the current w (module docstring).
+
+        Logs ``train/bellman_residual``, ``train/q_mean`` and ``train/value_mean``.
+
+        :param phi: the state features
+        :param states: (n, obs_dim) the collection C
+        :param candidates: (K, ...) candidate actions
+        :param l2: ridge of eq. (7), relative to the mean diagonal of its normal equations
+        :param logger: SB3's logger
+        :return: (p,) value weights w^_k
+        """
+        n, k, gamma = len(states), len(candidates), self.gamma
+        next_obs, going_on, rewards = self.step(states, candidates)
+        values = (rewards + gamma * going_on * blocked_values(phi, next_obs, self.value_weights)).reshape(n, k)
+        q_values, pick = values.max(dim=1)
+        chosen = torch.arange(n) * k + pick
+        state_phi = phi(states)
+        next_phi = phi(next_obs[chosen]) * going_on[chosen].unsqueeze(1)
+        weights = bellman_residual_weights(state_phi, next_phi, rewards[chosen], gamma, l2)
+        logger.record("train/bellman_residual", bellman_residual_rms(state_phi, next_phi, rewards[chosen], gamma, weights))
+        logger.record("train/q_mean", float(q_values.mean()))
+        logger.record("train/value_mean", float((state_phi @ weights).mean()))
+        return weights
+
+    def improve(self, value_weights: torch.Tensor, omega: float) -> None:
+        """w_k = (1 - omega) w_{k-1} + omega w^_k.
+
+        :param value_weights: (p,) w^_k from :meth:`evaluate`
+        :param omega: smoothing step in (0, 1]
+        """
+        self.value_weights = smooth(self.value_weights, value_weights, omega)
+
+    def restart(self) -> None:
+        """Forget w (phi moved to new coordinates)."""
+        self.value_weights = torch.zeros_like(self.value_weights)
+
+    @torch.no_grad()
+    def act(self, phi: FeatureMap, obs: torch.Tensor, candidates: torch.Tensor) -> torch.Tensor:
+        """The first action of the best d-step path: (N, obs_dim) -> (N, ...) candidates."""
+        return candidates[self.backed_up(phi, obs, candidates, self.depth - 1).argmax(dim=1)]
+
+    def backed_up(self, phi: FeatureMap, obs: torch.Tensor, candidates: torch.Tensor, remaining: int) -> torch.Tensor:
+        """r + gamma g L_remaining(s^'_a) at every state and candidate: (N, obs_dim) -> (N, K)."""
+        next_obs, going_on, rewards = self.step(obs, candidates)
+        if remaining == 0:
+            tail = blocked_values(phi, next_obs, self.value_weights)
+        else:
+            tail = self.backed_up(phi, next_obs, candidates, remaining - 1).max(dim=1).values
+        return (rewards + self.gamma * going_on * tail).reshape(len(obs), len(candidates))
