@@ -384,7 +384,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
     def policy_evaluation(self, states: torch.Tensor) -> torch.Tensor:
         """Policy evaluation, eq. (7), on C (|C|, obs_dim) (:meth:`PolicyEvaluator.evaluate`): (p,) value weights w."""
         with self._timed("policy_evaluation"):
-            return self.evaluator.evaluate(self.policy, states, self.logger)
+            return self.evaluator.evaluate(self.policy, states, self.logger, self._torch_rng)
 
     def policy_improvement(self, value_weights: torch.Tensor, states: torch.Tensor | None = None) -> None:
         """Policy improvement (:meth:`CMEPolicy.improve`), on the linear weights of Q (zero-padded,

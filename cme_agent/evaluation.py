@@ -59,7 +59,9 @@ class PolicyEvaluator:
         from_data = store.sample(size - len(uniform), generator).obs
         return torch.cat([uniform, from_data])
 
-    def evaluate(self, policy: CMEPolicy, states: torch.Tensor, logger: Logger) -> torch.Tensor:
+    def evaluate(
+        self, policy: CMEPolicy, states: torch.Tensor, logger: Logger, generator: torch.Generator | None = None
+    ) -> torch.Tensor:
         """Eq. (7): w minimising ``||Phi_C w - (r + gamma Phi'_C w)||^2`` plus a ridge, with
         ``Phi'_C`` the model's expected next phi at the policy's actions. A soft policy is
         evaluated in expectation over the candidates: ``Phi'_C = sum_a pi(a|s) E_model[phi~(S') | s, a]``
@@ -72,11 +74,13 @@ class PolicyEvaluator:
         :param policy: the policy to evaluate (its model is ``policy.dynamics``)
         :param states: (|C|, obs_dim) the collection C
         :param logger: SB3's logger
+        :param generator: the agent's torch RNG (the lookahead planner's draw of candidates)
         :return: (p,) value weights w, V(s) = <w, phi(s)>
         """
         config, dynamics = self.config, policy.dynamics
         if policy.lookahead is not None:
-            self.value_weights = policy.lookahead.evaluate(dynamics.phi, states, policy.candidates, config.l2, logger)
+            lookahead = policy.lookahead
+            self.value_weights = lookahead.evaluate(dynamics.phi, states, policy.candidates, config.l2, logger, generator)
             return self.value_weights
         factored = self.factored(dynamics, len(states))
         step = _policy_step(policy, states, None if factored else dynamics.readout(), logger)

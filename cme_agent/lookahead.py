@@ -37,6 +37,13 @@ DEFAULT_DEPTH = 3
 """The default lookahead depth where its K^d leaves are at most :data:`MAX_LEAVES`."""
 BLOCK_ROWS = 4096
 """Next states whose phi is built at once (phi (rows, p) in float32 at p = 1,000: 16 MiB)."""
+PLANNING_PAIRS = 2**17
+"""State-candidate pairs eq. (7)'s greedy step compares per round at most: with |C| states it
+compares a fresh draw of PLANNING_PAIRS // |C| of the candidates each round (all of them when that
+many fit). Each pair costs a phi evaluation: 257 candidates at 10,000 states would be 2.6 million
+phi rows a round. Acting compares all of them."""
+STEP_ROWS = 2**15
+"""State-candidate pairs the model steps at once (its float64 features: 32 MiB per 128 of them)."""
 
 FeatureMap = Callable[[torch.Tensor], torch.Tensor]
 """phi: (N, obs_dim) -> (N, p)."""
@@ -102,7 +109,9 @@ class LookaheadPlanner(nn.Module):
         :param obs: (N, obs_dim) observations
         :param candidates: (K, act_dim) Box actions or (K,) Discrete indices, env units
         """
-        next_obs, going_on, rewards = self.model.step(obs, self.model_actions(candidates))
+        size, actions = max(1, STEP_ROWS // len(candidates)), self.model_actions(candidates)
+        blocks = [self.model.step(obs[start : start + size], actions) for start in range(0, len(obs), size)]
+        next_obs, going_on, rewards = (torch.cat(parts) for parts in zip(*blocks, strict=True))
         spec = self.reward_spec
         if spec is not None:
             if spec.is_terminal is not None:
@@ -115,9 +124,16 @@ class LookaheadPlanner(nn.Module):
 
     @torch.no_grad()
     def evaluate(
-        self, phi: FeatureMap, states: torch.Tensor, candidates: torch.Tensor, l2: float, logger: Logger
+        self,
+        phi: FeatureMap,
+        states: torch.Tensor,
+        candidates: torch.Tensor,
+        l2: float,
+        logger: Logger,
+        generator: torch.Generator | None = None,
     ) -> torch.Tensor:
-        """Eq. (7) through the model at the greedy candidates of the current w (module docstring).
+        """Eq. (7) through the model at the greedy candidates of the current w (module docstring),
+        greedy over at most :data:`PLANNING_PAIRS` state-candidate pairs.
 
         Logs ``train/bellman_residual``, ``train/q_mean`` and ``train/value_mean``.
 
@@ -126,8 +142,12 @@ class LookaheadPlanner(nn.Module):
         :param candidates: (K, ...) candidate actions
         :param l2: ridge of eq. (7), relative to the mean diagonal of its normal equations
         :param logger: SB3's logger
+        :param generator: draws the candidates compared when not all of them fit :data:`PLANNING_PAIRS`
         :return: (p,) value weights w^_k
         """
+        compared = max(1, PLANNING_PAIRS // len(states))
+        if len(candidates) > compared:
+            candidates = candidates[torch.randperm(len(candidates), generator=generator)[:compared]]
         n, k, gamma = len(states), len(candidates), self.gamma
         next_obs, going_on, rewards = self.step(states, candidates)
         values = (rewards + gamma * going_on * blocked_values(phi, next_obs, self.value_weights)).reshape(n, k)

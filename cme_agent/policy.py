@@ -178,7 +178,8 @@ class CMEPolicy(BasePolicy):
             setting = "improvement.method='soft'" if self.soft else f"action_search.refine_steps={search.refine_steps}"
             raise ValueError(
                 f"{setting} is invalid with model_update.kind='observation': it acts by lookahead over the fixed "
-                "candidates with the smoothed greedy step"
+                "candidates with the smoothed greedy step (pass improvement={'method': 'smoothed_greedy'} and "
+                "action_search refine_steps=0 where an env's preset sets them)"
             )
         depth = default_depth(len(self.candidates)) if depth is None else depth
         obs_dim = self.observation_space.shape[0]

@@ -1,0 +1,122 @@
+"""model_update.kind="observation": the LookaheadPlanner's depth, its eq. (7) through the model,
+and the agent that plans and acts through it (Discrete and 6-dim Box actions, save/load, the
+settings it refuses)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from conftest import CARTPOLE_POLICY, small_kwargs
+from gymnasium import spaces
+from stable_baselines3.common.logger import Logger
+
+from cme_agent import CMEPolicyIteration
+from cme_agent.buffer import Transitions
+from cme_agent.lookahead import LookaheadPlanner, default_depth
+from cme_agent.rewards import RewardSpec
+from tests.test_defaults_contract import SMALL_BUDGETS
+from tests.test_six_dim_actions import PointMassSixActuators
+
+CANDIDATES = torch.tensor([[-1.0], [0.0], [1.0]])
+
+
+def drift_data(n: int = 500, seed: int = 0) -> Transitions:
+    """s' = s + a in one dim, never terminating."""
+    generator = torch.Generator().manual_seed(seed)
+    obs, actions = torch.rand(n, 1, generator=generator) * 4 - 2, torch.rand(n, 1, generator=generator) * 2 - 1
+    return Transitions(obs, actions, torch.zeros(n), obs + actions, torch.zeros(n, dtype=torch.bool))
+
+
+def planner(depth: int, reward: RewardSpec, width: int = 1) -> LookaheadPlanner:
+    lookahead = LookaheadPlanner(1, spaces.Box(-1.0, 1.0, (1,)), width, depth, 0.95, reward)
+    lookahead.fit(drift_data())
+    return lookahead
+
+
+def ones(obs: torch.Tensor) -> torch.Tensor:
+    return torch.ones(len(obs), 1)
+
+
+def test_the_default_depth_is_three_where_its_leaves_are_few() -> None:
+    assert [default_depth(k) for k in (2, 3, 9, 10, 11, 257)] == [3, 3, 3, 3, 1, 1]
+
+
+@pytest.mark.parametrize(("depth", "action"), [(1, 0.0), (2, 1.0), (3, 1.0)])
+def test_looking_ahead_pays_a_cost_now_for_a_reward_later(depth: int, action: float) -> None:
+    # r(s, a) = s - a^2 / 2 from s = 0 with V = 0 at the leaves: greedy keeps still; two steps
+    # ahead, pushing (-1/2 now) reaches s = 1, worth gamma * 1 = 0.95 at the next step
+    reward = RewardSpec(lambda obs, a: obs[:, 0] - 0.5 * a[:, 0] ** 2)
+    chosen = planner(depth, reward).act(ones, torch.zeros(2, 1), CANDIDATES)
+    assert chosen.tolist() == [[action], [action]]
+
+
+def test_eq7_through_the_model_values_a_constant_reward_at_its_discounted_sum() -> None:
+    never = RewardSpec(lambda obs, a: torch.ones(len(obs)), 0.0, lambda obs: obs[:, 0] > 100)  # known: it never ends
+    lookahead = planner(1, never)
+    states = torch.linspace(-1, 1, 200).unsqueeze(1)
+    weights = lookahead.evaluate(ones, states, CANDIDATES, 1e-6, Logger(None, []))
+    np.testing.assert_allclose((ones(states) @ weights).numpy(), 1 / (1 - 0.95), rtol=1e-4)
+    lookahead.improve(weights, 0.2)
+    torch.testing.assert_close(lookahead.value_weights, 0.2 * weights)
+    lookahead.restart()
+    assert not lookahead.value_weights.any()
+
+
+def test_a_known_termination_zeroes_the_value_past_it() -> None:
+    reward = RewardSpec(lambda obs, a: torch.zeros(len(obs)), 1.0, lambda obs: obs[:, 0] > 0.5)
+    next_obs, going_on, rewards = planner(1, reward).step(torch.zeros(1, 1), CANDIDATES)
+    assert going_on.tolist() == [1.0, 1.0, 0.0] and rewards.tolist() == [0.0, 0.0, 1.0]  # the bonus where it ends
+    np.testing.assert_allclose(next_obs[:, 0].numpy(), [-1.0, 0.0, 1.0], atol=1e-4)
+
+
+def test_the_agent_plans_through_the_observation_model_with_discrete_actions_and_survives_save_load(tmp_path) -> None:
+    kwargs = small_kwargs(
+        policy_kwargs=CARTPOLE_POLICY,
+        model_update={"kind": "observation", "holdout_size": 100},
+        improvement={"method": "smoothed_greedy"},  # the preset's is soft
+    )
+    model = CMEPolicyIteration("CMEPolicy", "CartPole-v1", seed=0, tensorboard_log=str(tmp_path), **kwargs)
+    model.learn(400, eval_env="CartPole-v1", eval_every=200, n_eval_episodes=2)
+    lookahead = model.policy.lookahead
+    assert lookahead.depth == 3 and model.q == 0  # two actions: 8 leaves; no psi is selected
+    assert lookahead.value_weights.abs().sum() > 0 and lookahead.model.change.abs().sum() > 0
+    model.save(tmp_path / "agent.zip")
+    loaded = CMEPolicyIteration.load(tmp_path / "agent.zip")
+    torch.testing.assert_close(loaded.policy.lookahead.value_weights, lookahead.value_weights)
+    torch.testing.assert_close(loaded.policy.lookahead.model.change, lookahead.model.change)
+    obs = np.random.default_rng(0).normal(0, 0.1, (32, 4)).astype(np.float32)
+    np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
+
+
+def test_six_dim_actions_act_greedily_through_the_observation_model() -> None:
+    kwargs = {**SMALL_BUDGETS, "model_update": {**SMALL_BUDGETS.get("model_update", {}), "kind": "observation"}}
+    model = CMEPolicyIteration("CMEPolicy", PointMassSixActuators(), seed=0, **kwargs).learn(400)
+    assert model.policy.lookahead.depth == 1  # 257 candidates: 257^3 leaves is too many
+    actions = model.predict(np.random.default_rng(0).normal(0, 0.5, (16, 6)).astype(np.float32), deterministic=True)[0]
+    space = model.action_space
+    assert actions.shape == (16, 6) and (actions >= space.low).all() and (actions <= space.high).all()
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        (
+            {"policy_kwargs": {"action_search": {"lookahead_depth": 3}}},
+            r"lookahead_depth=3 is invalid with model_update.kind='cme'",
+        ),
+        (
+            {"model_update": {"kind": "observation"}, "improvement": {"method": "soft"}},
+            r"improvement.method='soft' is invalid",
+        ),
+        (
+            {"model_update": {"kind": "observation"}, "policy_kwargs": {"action_search": {"refine_steps": 2}}},
+            r"refine_steps=2 is invalid with model_update.kind='observation'",
+        ),
+        ({"model_update": {"kind": "next_state"}}, r"model_update.kind"),
+        ({"policy_kwargs": {"action_search": {"lookahead_depth": 0}}}, r"lookahead_depth"),
+    ],
+)
+def test_settings_the_lookahead_cannot_honour_are_refused_by_name(kwargs: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=0, **kwargs)
