@@ -95,11 +95,16 @@ class LookaheadPlanner(nn.Module):
             logger.record("train/model_loss", self.holdout_error(holdout))
 
     @torch.no_grad()
-    def holdout_error(self, data: Transitions) -> float:
-        """Mean squared error of s^' on the non-terminal transitions of ``data``, per dim in units of s''s std."""
+    def prediction_errors(self, data: Transitions) -> tuple[torch.Tensor, torch.Tensor]:
+        """The squared error of s^' per transition, mean over dims in units of s''s std, on the
+        non-terminal transitions of ``data``: their states (n, obs_dim) and errors (n,), float64."""
         going_on = ~data.terminated
         predicted = self.model.next_obs(data.obs[going_on], self.model_actions(data.actions[going_on]))
-        return float(((predicted - data.next_obs[going_on].double()) / self.model.std).square().mean())
+        return data.obs[going_on], ((predicted - data.next_obs[going_on].double()) / self.model.std).square().mean(dim=1)
+
+    def holdout_error(self, data: Transitions) -> float:
+        """The mean of :meth:`prediction_errors` over ``data``."""
+        return float(self.prediction_errors(data)[1].mean())
 
     @torch.no_grad()
     def step(self, obs: torch.Tensor, candidates: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -174,9 +179,11 @@ class LookaheadPlanner(nn.Module):
         self.value_weights = torch.zeros_like(self.value_weights)
 
     @torch.no_grad()
-    def act(self, phi: FeatureMap, obs: torch.Tensor, candidates: torch.Tensor) -> torch.Tensor:
-        """The first action of the best d-step path: (N, obs_dim) -> (N, ...) candidates."""
-        return candidates[self.backed_up(phi, obs, candidates, self.depth - 1).argmax(dim=1)]
+    def greedy(self, phi: FeatureMap, obs: torch.Tensor, candidates: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The first action of the best d-step path and its value L_d(s): (N, obs_dim) -> (N, ...) candidates, (N,)."""
+        values = self.backed_up(phi, obs, candidates, self.depth - 1)
+        best = values.argmax(dim=1)
+        return candidates[best], values.gather(1, best.unsqueeze(1)).squeeze(1)
 
     def backed_up(self, phi: FeatureMap, obs: torch.Tensor, candidates: torch.Tensor, remaining: int) -> torch.Tensor:
         """r + gamma g L_remaining(s^'_a) at every state and candidate: (N, obs_dim) -> (N, K)."""

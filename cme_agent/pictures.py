@@ -10,6 +10,9 @@ ToyChain is the position), four pictures:
   transitions, averaged per cell of the slice (grey: no held-out transition there);
 - ``pictures/feature_centres``: the state part of psi's kernel centres.
 
+With ``model_update.kind="observation"`` the value and action are the lookahead's, the model
+error is that of s', and there are no feature centres (no psi).
+
 A (cos, sin) angle pair is one coordinate, the angle in radians. On a slice of a higher-dim
 state, V and the action are drawn with the other coordinates held fixed (at the box centre,
 angle 0, or given values); the held-out errors and the centres cannot be held fixed and are
@@ -235,18 +238,22 @@ def error_resolution(n_points: int, n_dims: int, resolution: int, per_cell: int 
 
 
 def holdout_errors(agent: BaseAlgorithm, max_samples: int = HOLDOUT_SAMPLES) -> tuple[torch.Tensor, np.ndarray]:
-    """The model's squared error ``||y - B psi(s, a)||^2`` (in phi's units) on held-out transitions.
+    """The model's squared error ``||y - B psi(s, a)||^2`` (in phi's units) on held-out transitions;
+    with the model of the observation, its error in s' (:meth:`LookaheadPlanner.prediction_errors`).
 
     :param agent: a :class:`~cme_agent.CMEPolicyIteration`
     :param max_samples: at most this many transitions, evenly spaced over the held-out store
         (deterministic: no random number is drawn from the agent)
     :return: their states (n, obs_dim) and errors (n,)
     """
-    n = len(agent.holdout)
-    if n == 0 or agent.q == 0:
+    n, lookahead = len(agent.holdout), agent.policy.lookahead
+    if n == 0 or (agent.q == 0 and lookahead is None):
         return torch.zeros(0, agent.dynamics.obs_encoder.dim), np.zeros(0)
     indices = torch.linspace(0, n - 1, min(n, max_samples)).round().long().to(agent.device)
     batch = agent.holdout.get(indices)
+    if lookahead is not None:
+        obs, errors = lookahead.prediction_errors(batch)
+        return obs, errors.cpu().numpy()
     psi, targets = agent.dynamics.regression_data(batch)
     errors = ((targets - agent.dynamics.predict(psi)) ** 2).sum(1)
     return batch.obs, errors.double().cpu().numpy()
@@ -298,6 +305,14 @@ def _action_pictures(
 
 
 @torch.no_grad()
+def value_title(agent: BaseAlgorithm) -> str:
+    """What the value picture shows: max_a Q, or the lookahead's value."""
+    lookahead = agent.policy.lookahead
+    if lookahead is None:
+        return "V(s) = max_a Q(s, a)"
+    return f"L_{lookahead.depth}(s): the best {lookahead.depth}-step lookahead through the model of s', <w, phi> at its leaves"
+
+
 def agent_pictures(
     agent: BaseAlgorithm,
     picture_dims: Sequence[int] | None = None,
@@ -337,7 +352,7 @@ def agent_pictures(
     actions, values = agent.policy.greedy(obs)
     values = values.double().cpu().numpy()
     pictures = {
-        "pictures/value": heatmap(values.reshape(shape), *axes, ["V(s) = max_a Q(s, a)", *note]),
+        "pictures/value": heatmap(values.reshape(shape), *axes, [value_title(agent), *note]),
         "pictures/greedy_action": _action_pictures(
             actions.cpu().numpy(), agent.action_space, shape, axes, note, ACTION_NAMES.get(env_id)
         ),
@@ -348,12 +363,15 @@ def agent_pictures(
     cells = error_resolution(errors.size, len(shown), resolution)
     error_map = bin_mean(fold(held_obs, shown_dims), errors, shown_dims, cells)
     mean = f"{errors.mean():.3g}" if errors.size else "n/a"
+    measure = "||y - B psi(s, a)||^2" if agent.policy.lookahead is None else "of s', mean_i ((s'_i - s^'_i) / std_i)^2"
     error_title = (
-        f"model error ||y - B psi(s, a)||^2, mean per cell of {errors.size} held-out transitions (all: {mean}); "
+        f"model error {measure}, mean per cell of {errors.size} held-out transitions (all: {mean}); "
         f"{'x'.join([str(cells)] * len(shown))} cells, log colour, grey: no data"
     )
     pictures["pictures/model_error"] = heatmap(error_map, *axes, [error_title + projected, head], log_scale=True)
 
+    if agent.policy.lookahead is not None:  # no psi: a value and an action looked ahead through the model of s'
+        return pictures
     centres = agent.dynamics.psi.centres[:, : agent.dynamics.psi.state_dim]
     centre_obs = encoder.center + centres * encoder.half_range
     coordinates = fold(centre_obs, shown_dims)

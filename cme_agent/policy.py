@@ -370,7 +370,10 @@ class CMEPolicy(BasePolicy):
         return self.dynamics.reward.step_reward(pairs_obs, pairs_actions).reshape(n, k)
 
     def greedy(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """The greedy actions and their Q values: (N, obs_dim) -> (N, act_dim) or (N,), and (N,)."""
+        """The greedy actions and their Q values (with the lookahead: its actions and their looked-ahead
+        values): (N, obs_dim) -> (N, act_dim) or (N,), and (N,)."""
+        if self.lookahead is not None:
+            return self.lookahead.greedy(self.dynamics.phi, obs, self.candidates)
         step = self.greedy_step(obs)
         return step.actions, step.values
 
@@ -434,7 +437,7 @@ class CMEPolicy(BasePolicy):
         """The greedy action (by lookahead through the model of the observation with that model),
         or with the soft improvement and ``deterministic=False`` a draw from pi."""
         if self.lookahead is not None:
-            return self.lookahead.act(self.dynamics.phi, obs, self.candidates)
+            return self.greedy(obs)[0]
         return self.sample(obs) if self.soft and not deterministic else self.act(obs)
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> torch.Tensor:

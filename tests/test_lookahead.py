@@ -7,13 +7,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from conftest import CARTPOLE_POLICY, small_kwargs
+from conftest import CARTPOLE_POLICY, PENDULUM_POLICY, small_kwargs
 from gymnasium import spaces
 from stable_baselines3.common.logger import Logger
 
 from cme_agent import CMEPolicyIteration
 from cme_agent.buffer import Transitions
 from cme_agent.lookahead import LookaheadPlanner, default_depth
+from cme_agent.pictures import PICTURE_TAGS, agent_pictures, holdout_errors
 from cme_agent.rewards import RewardSpec
 from tests.test_defaults_contract import SMALL_BUDGETS
 from tests.test_six_dim_actions import PointMassSixActuators
@@ -47,7 +48,7 @@ def test_looking_ahead_pays_a_cost_now_for_a_reward_later(depth: int, action: fl
     # r(s, a) = s - a^2 / 2 from s = 0 with V = 0 at the leaves: greedy keeps still; two steps
     # ahead, pushing (-1/2 now) reaches s = 1, worth gamma * 1 = 0.95 at the next step
     reward = RewardSpec(lambda obs, a: obs[:, 0] - 0.5 * a[:, 0] ** 2)
-    chosen = planner(depth, reward).act(ones, torch.zeros(2, 1), CANDIDATES)
+    chosen = planner(depth, reward).greedy(ones, torch.zeros(2, 1), CANDIDATES)[0]
     assert chosen.tolist() == [[action], [action]]
 
 
@@ -120,3 +121,16 @@ def test_six_dim_actions_act_greedily_through_the_observation_model() -> None:
 def test_settings_the_lookahead_cannot_honour_are_refused_by_name(kwargs: dict, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=0, **kwargs)
+
+
+def test_the_dashboards_show_the_lookahead_and_the_error_of_its_model() -> None:
+    kwargs = small_kwargs(model_update={"kind": "observation", "holdout_size": 100}, policy_kwargs=PENDULUM_POLICY)
+    model = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=0, **kwargs).learn(300)
+    pictures = agent_pictures(model, resolution=8)
+    assert set(pictures) == set(PICTURE_TAGS) - {"pictures/feature_centres"}  # no psi
+    obs, errors = holdout_errors(model)
+    assert len(errors) > 0 and len(obs) == len(errors) and (errors >= 0).all()
+    policy, state = model.policy, torch.tensor([[1.0, 0.0, 0.0]])
+    _, values = policy.greedy(state.expand(4, 3))
+    expected = policy.lookahead.backed_up(model.dynamics.phi, state, policy.candidates, policy.lookahead.depth - 1)
+    torch.testing.assert_close(values, expected.max(dim=1).values.expand(4))
