@@ -134,3 +134,15 @@ def test_the_dashboards_show_the_lookahead_and_the_error_of_its_model() -> None:
     _, values = policy.greedy(state.expand(4, 3))
     expected = policy.lookahead.backed_up(model.dynamics.phi, state, policy.candidates, policy.lookahead.depth - 1)
     torch.testing.assert_close(values, expected.max(dim=1).values.expand(4))
+
+
+def test_eq7_compares_a_fresh_draw_of_candidates_when_the_pairs_would_not_fit(monkeypatch) -> None:
+    lookahead, seen = planner(1, RewardSpec(lambda obs, a: -(a[:, 0] ** 2))), []
+    step = lookahead.step
+    monkeypatch.setattr(lookahead, "step", lambda obs, candidates: seen.append(candidates) or step(obs, candidates))
+    monkeypatch.setattr("cme_agent.lookahead.PLANNING_PAIRS", 600)
+    many, states, generator = torch.linspace(-1, 1, 21).unsqueeze(1), torch.zeros(200, 1), torch.Generator().manual_seed(0)
+    for _ in range(2):
+        lookahead.evaluate(ones, states, many, 1e-6, Logger(None, []), generator)
+    assert [len(drawn) for drawn in seen] == [3, 3] and not torch.equal(seen[0], seen[1])  # 600 // 200 per round, redrawn
+    assert all(((drawn >= -1) & (drawn <= 1)).all() and len(drawn.unique()) == 3 for drawn in seen)
