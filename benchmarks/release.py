@@ -63,6 +63,7 @@ def steps(workers: int) -> list[Step]:
     jobs = f"--workers {workers}"
     ten_seeds = " ".join(str(seed) for seed in range(10))
     figures = tuple(f"{stem}.{ext}" for stem in ("figure1", "figure2", "figure3") for ext in ("md", "csv", "png"))
+    observation = shlex.quote('{"model_update": {"kind": "observation"}}')
     return [
         Step("threads", ("python -m benchmarks.threads",), ("threads.md",)),
         Step("defaults_memory", ("python -m benchmarks.defaults_memory --repeats 3",), ("defaults_memory.md",)),
@@ -93,6 +94,15 @@ def steps(workers: int) -> list[Step]:
             ("ip_defaults",),
         ),
         Step(
+            "ip_observation",
+            (
+                "python -m benchmarks.learning_quality --envs --env-id InvertedPendulum-v5 --steps 5000 --target 950 "
+                f"--kwargs {observation} --seeds {ten_seeds} --stem ip_observation {jobs}",
+            ),
+            ("ip_observation.md", "ip_observation.csv", "ip_observation.png"),
+            ("ip_observation",),
+        ),
+        Step(
             "paper",
             (f"python -m benchmarks.reproduce {jobs}",),
             (*figures, "sample_efficiency.md", "sample_efficiency.csv"),
@@ -114,6 +124,15 @@ def steps(workers: int) -> list[Step]:
             (f"python -m benchmarks.unseen_envs --seeds 0 1 2 3 4 {jobs}",),
             ("unseen_envs.md", "unseen_envs.csv", "unseen_envs.png"),
             ("unseen_envs",),
+        ),
+        Step(
+            "unseen_envs_observation",
+            (
+                f"python -m benchmarks.unseen_envs --agents cme --kwargs {observation} --stem unseen_envs_observation "
+                f"--seeds 0 1 2 {jobs}",
+            ),
+            ("unseen_envs_observation.md", "unseen_envs_observation.csv", "unseen_envs_observation.png"),
+            ("unseen_envs_observation",),
         ),
         Step(
             "endurance",
