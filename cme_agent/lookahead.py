@@ -35,6 +35,8 @@ MAX_LEAVES = 1000
 """Largest K^d of the default lookahead depth (:func:`default_depth`)."""
 DEFAULT_DEPTH = 3
 """The default lookahead depth where its K^d leaves are at most :data:`MAX_LEAVES`."""
+LEAF_LIMIT = 10**6
+"""Most K^d leaves a lookahead depth d may have (each leaf is a model step and a phi row per action)."""
 BLOCK_ROWS = 4096
 """Next states whose phi is built at once (phi (rows, p) in float32 at p = 1,000: 16 MiB)."""
 PLANNING_PAIRS = 2**17

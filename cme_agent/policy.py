@@ -34,7 +34,7 @@ from cme_agent.action_search import projected_ascent
 from cme_agent.config import ActionSearchConfig, EvaluationConfig, ImprovementConfig, ObservationConfig, build_config
 from cme_agent.dynamics.cme import CMEDynamics, PhiSpec
 from cme_agent.kernel_bank import kernel_from_points, kernel_points, resize_buffers
-from cme_agent.lookahead import LookaheadPlanner, default_depth
+from cme_agent.lookahead import LEAF_LIMIT, LookaheadPlanner, default_depth
 from cme_agent.planning import action_spread, expected_candidate_features, smooth, softmax_policy
 from cme_agent.rewards import RewardSpec
 
@@ -181,7 +181,13 @@ class CMEPolicy(BasePolicy):
                 "candidates with the smoothed greedy step (pass improvement={'method': 'smoothed_greedy'} and "
                 "action_search refine_steps=0 where an env's preset sets them)"
             )
-        depth = default_depth(len(self.candidates)) if depth is None else depth
+        n_candidates = len(self.candidates)
+        depth = default_depth(n_candidates) if depth is None else depth
+        if n_candidates**depth > LEAF_LIMIT:
+            raise ValueError(
+                f"action_search.lookahead_depth={depth} is invalid with {n_candidates} candidate actions: "
+                f"{n_candidates}^{depth} leaves per action, more than {LEAF_LIMIT:,}; pass a smaller depth"
+            )
         obs_dim = self.observation_space.shape[0]
         return LookaheadPlanner(obs_dim, self.action_space, self.dynamics.p, depth, self.gamma, reward)
 

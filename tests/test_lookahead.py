@@ -115,6 +115,10 @@ def test_six_dim_actions_act_greedily_through_the_observation_model() -> None:
             r"refine_steps=2 is invalid with model_update.kind='observation'",
         ),
         ({"model_update": {"kind": "next_state"}}, r"model_update.kind"),
+        (
+            {"model_update": {"kind": "observation"}, "policy_kwargs": {"action_search": {"lookahead_depth": 5}}},
+            r"lookahead_depth=5 is invalid with 21 candidate actions: 21\^5 leaves",  # Pendulum's preset: 21 torques
+        ),
         ({"policy_kwargs": {"action_search": {"lookahead_depth": 0}}}, r"lookahead_depth"),
     ],
 )
