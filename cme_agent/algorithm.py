@@ -358,23 +358,19 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             self.evaluator.restart()
 
     def feature_selection(self, new_data: Transitions) -> int:
-        """Feature selection, eq. (5), at the new data's state-actions (:meth:`FeatureSelector.select`):
-        features added (none with the model of the observation, which has no psi)."""
-        if self.policy.lookahead is not None:
-            return 0
+        """Feature selection, eq. (5), at the new data (:meth:`FeatureSelector.select`): features added (none without psi)."""
         with self._timed("feature_selection"):
+            if self.policy.lookahead is not None:
+                return 0
             return self.selector.select(self.dynamics, new_data, self.store, self._torch_rng, self.logger)
 
     def model_update(self) -> None:
-        """The model update, eq. (6): B refit on a sample of D or SGD steps (:meth:`ModelTrainer.update`);
-        or the model of the observation refit on that sample (``train/model_loss``: its held-out error)."""
+        """The model update (:class:`ModelTrainer`): B by eq. (6), or the model of the observation refit."""
+        args = (self.store, self.holdout, self._torch_rng, self.logger)
         with self._timed("model_update"):
             if self.policy.lookahead is not None:
-                size = self.model_update_config.holdout_size
-                holdout = self.holdout.sample(size, self._torch_rng) if len(self.holdout) else None
-                self.policy.lookahead.fit(self.trainer.refit_sample(self.store, self._torch_rng), holdout, self.logger)
-                return
-            self.trainer.update(self.dynamics, self.store, self.holdout, self._torch_rng, self.logger, self.iteration)
+                return self.trainer.fit_observation_model(self.policy.lookahead, *args)
+            self.trainer.update(self.dynamics, *args, self.iteration)
 
     def draw_collection(self) -> torch.Tensor:
         """The collection C of eq. (7) (:meth:`PolicyEvaluator.draw_collection`): (|C|, obs_dim) states."""

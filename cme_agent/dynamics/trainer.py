@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from typing import TYPE_CHECKING
 
 import torch
 from stable_baselines3.common.logger import Logger
@@ -11,6 +12,9 @@ from stable_baselines3.common.logger import Logger
 from cme_agent.buffer import Transitions, TransitionStore
 from cme_agent.config import ModelUpdateConfig
 from cme_agent.dynamics.cme import CMEDynamics
+
+if TYPE_CHECKING:
+    from cme_agent.lookahead import LookaheadPlanner
 
 DIVERGENCE_FACTOR = 10.0
 """An SGD update that multiplies the loss on a check batch by more than this is undone."""
@@ -40,6 +44,26 @@ class ModelTrainer:
         if len(store) > self.config.refit_size:
             return store.sample(self.config.refit_size, generator)
         return store.get(slice(0, len(store)))
+
+    def fit_observation_model(
+        self,
+        lookahead: LookaheadPlanner,
+        store: TransitionStore,
+        holdout: TransitionStore,
+        generator: torch.Generator,
+        logger: Logger,
+    ) -> None:
+        """With ``kind="observation"``: refit the model of the observation on :meth:`refit_sample`
+        and log its error on ``holdout_size`` held-out transitions as ``train/model_loss``.
+
+        :param lookahead: the planner that owns the model
+        :param store: D
+        :param holdout: the held-out transitions
+        :param generator: the agent's torch RNG
+        :param logger: SB3's logger
+        """
+        held_out = holdout.sample(self.config.holdout_size, generator) if len(holdout) else None
+        lookahead.fit(self.refit_sample(store, generator), held_out, logger)
 
     def update(
         self,
