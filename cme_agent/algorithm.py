@@ -63,19 +63,18 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
     :param omega: step of the Q smoothing Q_k = (1 - omega) Q_{k-1} + omega Q^_k, in (0, 1]
     :param steps_per_iteration: m, env steps collected per iteration (all envs together)
     :param feature_selection: matching pursuit settings (:class:`FeatureSelectionConfig` or dict)
-    :param model_update: how B is learned: an exact ridge refit (default) or SGD, eq. (6) (:class:`ModelUpdateConfig` or dict)
+    :param model_update: how the model is learned (:class:`ModelUpdateConfig` or dict): B by an exact ridge
+        refit (default) or SGD, eq. (6); or ``kind="observation"``, a model of s' that acting looks ahead through
     :param evaluation: policy evaluation settings (:class:`EvaluationConfig` or dict)
     :param exploration: behaviour policy settings (:class:`ExplorationConfig` or dict)
     :param improvement: the policy improvement step (:class:`ImprovementConfig` or dict): the
         paper's smoothed greedy step (default) or KL-regularised (soft) policy iteration
-    :param reward_fn: the reward r(s, a) as a :class:`RewardSpec` or a torch callable
-        ``(obs (N, obs_dim), action) -> (N,)``; default: the known reward of the env id, the
-        env's own ``reward_function``, or else a reward learned by regression on psi. Not saved
-        with the model: pass it again to ``load()``.
-    :param reset_envs_each_iteration: start every iteration's data acquisition with fresh
-        episodes, the envs reset with seeds drawn from the agent's RNG: the run is then a
-        deterministic function of the agent's state at iteration boundaries, so a run resumed
-        from a checkpoint ends exactly as an uninterrupted one
+    :param reward_fn: the reward r(s, a), a :class:`RewardSpec` or a torch callable ``(obs (N, obs_dim), action) -> (N,)``;
+        default: the env id's known reward, the env's own ``reward_function``, else a reward learned
+        by regression. Not saved with the model: pass it again to ``load()``.
+    :param reset_envs_each_iteration: start every iteration's data acquisition with fresh episodes,
+        seeded from the agent's RNG: the run is then a deterministic function of the agent's state at
+        iteration boundaries, so a run resumed from a checkpoint ends exactly as an uninterrupted one
     :param preset: apply the tuned settings of the env id where the package has some
         (:mod:`cme_agent.presets`) under the arguments given; False: the library defaults for
         every argument not given
@@ -85,10 +84,9 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
     :param verbose: 0 silent, 1 info
     :param seed: seed of every random draw of the agent
     :param device: torch device (``"auto"``: CUDA if available)
-    :param n_threads: torch's CPU threads while :meth:`learn` runs (the caller's setting is put back
-        after it); default :data:`~cme_agent.threads.DEFAULT_THREADS` (1), what ``python -m
-        benchmarks.threads`` measured fastest on a shared machine; None: torch's own setting, left
-        as it is. Like ``device``, not saved with the model: pass it to ``load()`` again
+    :param n_threads: torch's CPU threads while :meth:`learn` runs (the caller's put back after); default
+        :data:`~cme_agent.threads.DEFAULT_THREADS` (1, fastest on a shared machine: ``python -m benchmarks.threads``);
+        None: torch's own setting, left as it is. Like ``device``, not saved: pass it to ``load()`` again
     :param _init_setup_model: build the model at construction (False when loading)
     """
 
@@ -175,8 +173,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
 
     # ------------------------------------------------------------------ set-up
     def _setup_model(self) -> None:
-        """Build the policy (with the model as its submodule ``dynamics``), the stores, the
-        owners of the steps of Algorithm 1 and the RNGs."""
+        """Build the policy (the model is its submodule ``dynamics``), the stores, the step owners, the RNGs."""
         if self.seed is None:
             self.seed = int(np.random.SeedSequence().generate_state(1)[0])
         self.set_random_seed(self.seed)
