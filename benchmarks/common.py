@@ -236,3 +236,10 @@ def run_recorded(
         curves = pool.map(functools.partial(_recorded, compute), jobs)
     runs = sorted({json.loads(job.record.read_text())["command"] for job in jobs})
     return curves, runs, time.perf_counter() - start
+
+
+def with_cme(kwargs: dict[str, Any]) -> dict[str, Any]:
+    """``kwargs`` of ``CMEPolicyIteration`` with ``model_update.kind="cme"`` unless they name a kind: the
+    diagnostics measure the paper's CME, which the default ``kind="auto"`` replaces where s' - s is
+    linear in (s, a) (InvertedPendulum-v5, PointGoal2D-v0)."""
+    return {**kwargs, "model_update": {"kind": "cme", **kwargs.get("model_update", {})}}

@@ -94,15 +94,6 @@ def steps(workers: int) -> list[Step]:
             ("ip_defaults",),
         ),
         Step(
-            "ip_observation",
-            (
-                "python -m benchmarks.learning_quality --envs --env-id InvertedPendulum-v5 --steps 5000 --target 950 "
-                f"--kwargs {observation} --seeds {ten_seeds} --stem ip_observation {jobs}",
-            ),
-            ("ip_observation.md", "ip_observation.csv", "ip_observation.png"),
-            ("ip_observation",),
-        ),
-        Step(
             "paper",
             (f"python -m benchmarks.reproduce {jobs}",),
             (*figures, "sample_efficiency.md", "sample_efficiency.csv"),
@@ -124,6 +115,15 @@ def steps(workers: int) -> list[Step]:
             (f"python -m benchmarks.unseen_envs --seeds 0 1 2 3 4 {jobs}",),
             ("unseen_envs.md", "unseen_envs.csv", "unseen_envs.png"),
             ("unseen_envs",),
+        ),
+        Step(
+            "unseen_envs_auto",
+            (  # the envs where the default model_update.kind="auto" chooses the model of the observation
+                "python -m benchmarks.unseen_envs --agents cme --envs InvertedPendulum-v5 PointGoal2D-v0 "
+                f"--seeds 0 1 2 3 4 --stem unseen_envs_auto {jobs}",
+            ),
+            ("unseen_envs_auto.md", "unseen_envs_auto.csv", "unseen_envs_auto.png"),
+            ("unseen_envs_auto",),
         ),
         Step(
             "unseen_envs_observation",

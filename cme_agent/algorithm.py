@@ -63,8 +63,8 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
     :param omega: step of the Q smoothing Q_k = (1 - omega) Q_{k-1} + omega Q^_k, in (0, 1]
     :param steps_per_iteration: m, env steps collected per iteration (all envs together)
     :param feature_selection: matching pursuit settings (:class:`FeatureSelectionConfig` or dict)
-    :param model_update: how the model is learned (:class:`ModelUpdateConfig` or dict): B by an exact ridge
-        refit (default) or SGD, eq. (6); or ``kind="observation"``, a model of s' that acting looks ahead through
+    :param model_update: the model and how it is learned (:class:`ModelUpdateConfig` or dict): the CME, B by eq. (6), or a
+        model of s' that acting looks ahead through; by default the latter where s' - s is linear in (s, a)
     :param evaluation: policy evaluation settings (:class:`EvaluationConfig` or dict)
     :param exploration: behaviour policy settings (:class:`ExplorationConfig` or dict)
     :param improvement: the policy improvement step (:class:`ImprovementConfig` or dict): the
@@ -246,20 +246,16 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         eval_every: int = 1000,
         n_eval_episodes: int = 10,
     ) -> SelfCME:
-        """Run Algorithm 1 until ``total_timesteps`` env steps have been taken, with torch at
-        ``n_threads`` CPU threads (the caller's setting is put back afterwards).
+        """Run Algorithm 1 until ``total_timesteps`` env steps have been taken, torch at ``n_threads`` CPU threads.
 
-        The dashboards of ``train.py`` come along (:func:`~cme_agent.dashboards.training_dashboards`):
-        the returns of the greedy and the noisy training episodes apart
-        (``rollout/greedy_ep_rew_mean``, ``rollout/explore_ep_rew_mean``), the pictures whenever
-        the logger writes TensorBoard (``tensorboard_log=``), and with ``eval_env`` the
-        deterministic policy's ``eval/mean_reward`` every ``eval_every`` env steps and at the end;
-        a callback of either kind you pass replaces the default one.
+        The dashboards of ``train.py`` come along (:func:`~cme_agent.dashboards.training_dashboards`): the returns
+        of the greedy and the noisy training episodes apart (``rollout/greedy_ep_rew_mean``, ``rollout/explore_ep_rew_mean``),
+        the pictures whenever the logger writes TensorBoard (``tensorboard_log=``), and with ``eval_env`` the deterministic
+        policy's ``eval/mean_reward`` every ``eval_every`` env steps and at the end; a callback of either kind replaces it.
 
         :param total_timesteps: env steps to take (all envs together)
         :param callback: called once per env step (``on_step``); training stops when it returns False
-        :param log_interval: iterations between log dumps (SB3's table on stdout at ``verbose=1``,
-            TensorBoard): 10 prints a tenth of the tables
+        :param log_interval: iterations between log dumps (SB3's table on stdout at ``verbose=1``, TensorBoard)
         :param tb_log_name: name of the TensorBoard run
         :param reset_num_timesteps: start counting from 0 (else continue the count)
         :param progress_bar: show a progress bar (tqdm + rich) with the ETA and, with
@@ -301,14 +297,15 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
 
     @torch.no_grad()
     def train_iteration(self, new_data: Transitions) -> None:
-        """Everything of one iteration after data acquisition (Algorithm 1, lines 2-5): the
-        observation box, feature selection, the model update, then ``evaluation.rounds`` times
-        evaluation and improvement on a fresh collection C.
+        """Everything of one iteration after data acquisition (Algorithm 1, lines 2-5): the observation box, the
+        model's kind (once), feature selection, the model update, then ``evaluation.rounds`` times evaluation and
+        improvement on a fresh collection C.
 
         :param new_data: the transitions this iteration collected (already in the store D)
         """
         self.iteration += 1
         self.observation_box(new_data)
+        self.model_choice()
         self.feature_selection(new_data)
         self.model_update()
         for _ in range(self.evaluation_config.rounds):
@@ -353,6 +350,11 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
         if self.box.update(self.dynamics, new_data, self.store, self.holdout, self.trainer, self._torch_rng, self.logger):
             self.policy.restart()
             self.evaluator.restart()
+
+    def model_choice(self) -> None:
+        """``model_update.kind="auto"``, once: the model the first data points to (:meth:`ModelTrainer.choose_kind`)."""
+        if self.policy.model_kind == "auto":
+            self.model_update_config = self.trainer.choose_kind(self.policy, self.store, self.holdout, self.logger)
 
     def feature_selection(self, new_data: Transitions) -> int:
         """Feature selection, eq. (5), at the new data (:meth:`FeatureSelector.select`): features added (none without psi)."""
@@ -405,18 +407,10 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
 
     def _constructor_kwargs(self) -> dict[str, Any]:
         """The constructor arguments as plain data (for :meth:`save`)."""
-        return {
-            "gamma": self.gamma,
-            "omega": self.omega,
-            "steps_per_iteration": self.steps_per_iteration,
-            **{group: plain(getattr(self, f"{group}_config")) for group in GROUPS},
-            "reset_envs_each_iteration": self.reset_envs_each_iteration,
-            "policy_kwargs": plain(self.policy_kwargs),
-            "stats_window_size": self.stats_window_size,
-            "tensorboard_log": self.tensorboard_log,
-            "verbose": self.verbose,
-            "seed": self.seed,
-        }
+        names = ("gamma", "omega", "steps_per_iteration", "reset_envs_each_iteration", "stats_window_size", "tensorboard_log")
+        groups = {group: plain(getattr(self, f"{group}_config")) for group in GROUPS}
+        plain_names = {name: getattr(self, name) for name in (*names, "verbose", "seed")}
+        return {**plain_names, **groups, "policy_kwargs": plain(self.policy_kwargs)}
 
     @contextlib.contextmanager
     def _timed(self, phase: str) -> Iterator[None]:

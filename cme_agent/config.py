@@ -154,8 +154,9 @@ class FeatureSelectionConfig:
 MODEL_UPDATE_L2 = {"sgd": 1e-6, "ridge": 1e-4}
 """How B is learned each iteration (``model_update.method``), and the default ridge of each."""
 MODEL_UPDATE_METHODS = tuple(MODEL_UPDATE_L2)
-MODEL_KINDS = ("cme", "observation")
-"""What the agent models (``model_update.kind``): the paper's CME of phi, or the observation itself."""
+MODEL_KINDS = ("auto", "cme", "observation")
+"""What the agent models (``model_update.kind``): the paper's CME of phi, the observation itself, or
+the one the first data points to."""
 
 
 @dataclass(frozen=True)
@@ -186,6 +187,10 @@ class ModelUpdateConfig:
         :class:`~cme_agent.dynamics.observation.ObservationModel`, refit each iteration on
         ``refit_size`` transitions of D; it can be rolled forward, so acting looks
         ``action_search.lookahead_depth`` steps ahead, :class:`~cme_agent.lookahead.LookaheadPlanner`)
+        or ``"auto"``, chosen at the first iteration: ``"observation"`` where a linear model of
+        s' - s reaches a held-out R^2 of ``auto_r2`` on every dim, else ``"cme"`` (and ``"cme"``
+        with the soft improvement or ``refine_steps``, which are the CME's)
+    :param auto_r2: the held-out R^2 in (0, 1] that ``kind="auto"`` asks of every dim
     """
 
     method: str = "ridge"
@@ -197,11 +202,13 @@ class ModelUpdateConfig:
     holdout_fraction: float = 0.1
     holdout_size: int = 1000
     feature_dynamics: bool = True
-    kind: str = "cme"
+    kind: str = "auto"
+    auto_r2: float = 0.99
 
     def __post_init__(self) -> None:
         check_choice("model_update.method", self.method, MODEL_UPDATE_METHODS)
         check_choice("model_update.kind", self.kind, MODEL_KINDS)
+        check_unit_interval("model_update.auto_r2", self.auto_r2, open_low=True)
         check_positive_int("model_update.refit_size", self.refit_size)
         if self.l2 is None:  # frozen: the method's ridge is written in once, so the config says what ran
             object.__setattr__(self, "l2", MODEL_UPDATE_L2[self.method])

@@ -22,6 +22,7 @@ from cme_agent.dynamics.cme import CMEDynamics
 from cme_agent.dynamics.kernel_regression import kernel_ridge_weights
 from cme_agent.dynamics.selection import FeatureSelector, record_growth
 from cme_agent.dynamics.trainer import ModelTrainer
+from cme_agent.persistence import plain
 
 
 class KernelFeatures(FeatureSelector):
@@ -72,7 +73,7 @@ class KernelPolicyIteration(CMEPolicyIteration):
     :param kernel_bandwidth: width of the Gaussian kernel, in normalised state-action units
     :param kernel_l2: ridge lambda of the kernel regression
     :param kwargs: as :class:`~cme_agent.CMEPolicyIteration` (``feature_selection`` and
-        ``model_update`` other than ``holdout_*`` and ``feature_dynamics`` are unused)
+        ``model_update`` other than ``holdout_*`` and ``feature_dynamics`` are unused; the kind is the CME)
     """
 
     def __init__(self, *args: Any, kernel_bandwidth: float = 0.3, kernel_l2: float = 1e-4, **kwargs: Any) -> None:
@@ -80,7 +81,10 @@ class KernelPolicyIteration(CMEPolicyIteration):
         check_non_negative("kernel_l2", kernel_l2)
         self.kernel_bandwidth = kernel_bandwidth
         self.kernel_l2 = kernel_l2
-        super().__init__(*args, **kwargs)
+        model_update = plain(kwargs.pop("model_update", None) or {})
+        if model_update.get("kind", "cme") not in ("auto", "cme"):
+            raise ValueError(f"model_update.kind={model_update['kind']!r} is invalid for the Kernel baseline: a CME")
+        super().__init__(*args, model_update={**model_update, "kind": "cme"}, **kwargs)
 
     def _constructor_kwargs(self) -> dict[str, Any]:
         return {**super()._constructor_kwargs(), "kernel_bandwidth": self.kernel_bandwidth, "kernel_l2": self.kernel_l2}

@@ -27,7 +27,7 @@ from stable_baselines3.common.logger import Logger
 from torch import nn
 
 from cme_agent.buffer import Transitions
-from cme_agent.dynamics.observation import ObservationModel
+from cme_agent.dynamics.observation import ObservationModel, change_r2
 from cme_agent.planning import bellman_residual_rms, bellman_residual_weights, smooth
 from cme_agent.rewards import RewardSpec
 
@@ -95,6 +95,10 @@ class LookaheadPlanner(nn.Module):
         self.model.fit(dataclasses.replace(data, actions=self.model_actions(data.actions)))
         if holdout is not None and logger is not None:
             logger.record("train/model_loss", self.holdout_error(holdout))
+
+    def change_r2(self, train: Transitions, holdout: Transitions) -> torch.Tensor:
+        """:func:`~cme_agent.dynamics.observation.change_r2` with the actions as the model reads them: (obs_dim,)."""
+        return change_r2(*(dataclasses.replace(data, actions=self.model_actions(data.actions)) for data in (train, holdout)))
 
     @torch.no_grad()
     def prediction_errors(self, data: Transitions) -> tuple[torch.Tensor, torch.Tensor]:

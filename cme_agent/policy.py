@@ -111,7 +111,8 @@ class CMEPolicy(BasePolicy):
     :param improvement: the improvement step (:class:`ImprovementConfig` or dict; None: the
         paper's smoothed greedy step)
     :param model_kind: ``model_update.kind``: ``"observation"`` plans and acts through a
-        :class:`~cme_agent.lookahead.LookaheadPlanner` (the submodule ``lookahead``) instead of Q's weights
+        :class:`~cme_agent.lookahead.LookaheadPlanner` (the submodule ``lookahead``) instead of Q's
+        weights; ``"auto"`` holds the planner until :meth:`choose_model`
     :param gamma: the discount factor the lookahead acts with (``model_kind="observation"``)
     """
 
@@ -167,7 +168,9 @@ class CMEPolicy(BasePolicy):
     def _make_lookahead(self, reward: RewardSpec | None) -> LookaheadPlanner | None:
         """The planner through the model of the observation, or None with the CME."""
         depth, search = self.action_search.lookahead_depth, self.action_search
-        if self.model_kind != "observation":
+        if self.model_kind == "auto" and (self.soft or search.refine_steps > 0):
+            self.model_kind = "cme"  # the soft policy and refined actions belong to the CME
+        if self.model_kind == "cme":
             if depth not in (None, 1):
                 raise ValueError(
                     f"action_search.lookahead_depth={depth} is invalid with model_update.kind={self.model_kind!r}: "
@@ -190,6 +193,12 @@ class CMEPolicy(BasePolicy):
             )
         obs_dim = self.observation_space.shape[0]
         return LookaheadPlanner(obs_dim, self.action_space, self.dynamics.p, depth, self.gamma, reward)
+
+    def choose_model(self, kind: str) -> None:
+        """Settle ``model_kind="auto"``: keep the lookahead with ``"observation"``, drop it with ``"cme"``."""
+        self.model_kind = kind
+        if kind == "cme":
+            self.lookahead = None
 
     def _make_candidates(self) -> torch.Tensor:
         """Candidate actions in env units: all Discrete actions (K,), or a Box grid / sample (K, act_dim)."""

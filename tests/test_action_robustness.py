@@ -17,7 +17,7 @@ pytest.importorskip("mujoco")
 
 @pytest.fixture(scope="module")
 def agent() -> CMEPolicyIteration:
-    return CMEPolicyIteration("CMEPolicy", "InvertedPendulum-v5", seed=0).learn(300)
+    return CMEPolicyIteration("CMEPolicy", "InvertedPendulum-v5", seed=0, model_update={"kind": "cme"}).learn(300)
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,11 @@ from cme_agent.encoding import ObservationEncoder
 from cme_agent.state_features import RandomFourierFeatures, make_state_features
 
 UNBOUNDED = spaces.Box(-np.inf, np.inf, (5,), np.float32)
-CARTPOLE_DATA_METRIC = {"preset": False, "policy_kwargs": {"phi": {"kind": "fourier", "metric": "data", "max_width": 200}}}
+CARTPOLE_DATA_METRIC = {
+    "preset": False,
+    "model_update": {"kind": "cme"},
+    "policy_kwargs": {"phi": {"kind": "fourier", "metric": "data", "max_width": 200}},
+}
 
 
 def data_phi(seed: int = 0) -> RandomFourierFeatures:

@@ -27,7 +27,14 @@ def test_true_reward_is_the_envs_reward():
 
 
 def test_probe_rows_after_a_short_run():
-    model = CMEPolicyIteration("CMEPolicy", CUSTOM_ENV, seed=0, steps_per_iteration=100, exploration={"random_steps": 100})
+    model = CMEPolicyIteration(
+        "CMEPolicy",
+        CUSTOM_ENV,
+        seed=0,
+        steps_per_iteration=100,
+        exploration={"random_steps": 100},
+        model_update={"kind": "cme"},
+    )
     probe = reward_model_error.RewardErrorProbe(seed=0, every=200)
     model.learn(400, callback=probe)
     assert [row["steps"] for row in probe.rows] == [200, 400]

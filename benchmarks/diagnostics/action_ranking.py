@@ -28,7 +28,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from benchmarks.common import add_seed_arguments, command_line, map_seeds, markdown_table, seed_table, write_markdown
+from benchmarks.common import add_seed_arguments, command_line, map_seeds, markdown_table, seed_table, with_cme, write_markdown
 from cme_agent import CMEPolicyIteration
 
 METRICS = ("r2", "centred_corr", "best_agrees", "true_gap_std", "model_gap_std", "gap_rmse")
@@ -93,7 +93,7 @@ def run_seed(job: tuple[str, int, int, dict[str, Any], int, int, float]) -> dict
     """Train one agent and measure it: (env_id, seed, steps, kwargs, n_states, n_actions, noise) -> its row."""
     env_id, seed, steps, kwargs, n_states, n_actions, noise = job
     torch.set_num_threads(1)
-    agent = CMEPolicyIteration("CMEPolicy", env_id, seed=seed, **kwargs).learn(steps)
+    agent = CMEPolicyIteration("CMEPolicy", env_id, seed=seed, **with_cme(kwargs)).learn(steps)
     env = gym.make(env_id)
     if not hasattr(env.unwrapped, "set_state"):
         raise ValueError(f"{env_id} is not a MuJoCo env: this benchmark resets the simulator with set_state")

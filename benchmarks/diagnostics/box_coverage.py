@@ -20,7 +20,7 @@ import argparse
 import torch
 
 from benchmarks import unseen_envs
-from benchmarks.common import command_line, markdown_table, write_markdown
+from benchmarks.common import command_line, markdown_table, with_cme, write_markdown
 from cme_agent import CMEPolicyIteration
 
 
@@ -31,7 +31,7 @@ def coverage(env_id: str, steps: int, seed: int, max_expansions: int | None) -> 
     """
     torch.set_num_threads(1)
     kwargs = {} if max_expansions is None else {"policy_kwargs": {"observation": {"max_expansions": max_expansions}}}
-    model = CMEPolicyIteration("CMEPolicy", env_id, seed=seed, verbose=0, **kwargs)
+    model = CMEPolicyIteration("CMEPolicy", env_id, seed=seed, verbose=0, **with_cme(kwargs))
     model.learn(steps)
     encoder = model.dynamics.obs_encoder
     obs = model.store.get(slice(len(model.store) // 2, len(model.store))).obs

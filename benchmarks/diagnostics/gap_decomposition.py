@@ -97,6 +97,7 @@ from benchmarks.common import (
     markdown_table,
     save_record,
     seed_table,
+    with_cme,
     write_markdown,
 )
 from benchmarks.diagnostics.true_dynamics_planning import phi_of, r_squared, rollout_horizon
@@ -602,7 +603,7 @@ def trained_agent(env_id: str, seed: int, steps: int, kwargs: dict[str, Any], pa
             raise SystemExit(f"{path} was trained for {agent.num_timesteps} steps, not {steps}: use another --stem")
         return agent, 0.0
     start = time.perf_counter()
-    agent = CMEPolicyIteration("CMEPolicy", env_id, seed=seed, **kwargs).learn(steps)
+    agent = CMEPolicyIteration("CMEPolicy", env_id, seed=seed, **with_cme(kwargs)).learn(steps)
     agent.save(path, include=["replay_buffer"])
     return agent, time.perf_counter() - start
 

@@ -24,7 +24,7 @@ import gymnasium as gym
 import torch
 from stable_baselines3.common.callbacks import BaseCallback
 
-from benchmarks.common import command_line, markdown_table, write_report
+from benchmarks.common import command_line, markdown_table, with_cme, write_report
 from benchmarks.learning_quality import episode_returns
 from benchmarks.unseen_envs import CUSTOM_ENV, EVAL_SEED_OFFSET
 from cme_agent import CMEPolicyIteration
@@ -104,7 +104,7 @@ def main() -> None:
     parser.add_argument("--stem", default="reward_model_error")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    model = CMEPolicyIteration("CMEPolicy", CUSTOM_ENV, seed=args.seed, verbose=0, **json.loads(args.kwargs))
+    model = CMEPolicyIteration("CMEPolicy", CUSTOM_ENV, seed=args.seed, verbose=0, **with_cme(json.loads(args.kwargs)))
     probe = RewardErrorProbe(args.seed)
     model.learn(args.steps, callback=probe)
     header = ["steps", "return", "q"] + [

@@ -39,7 +39,7 @@ import numpy as np
 import torch
 from stable_baselines3.common.env_util import make_vec_env
 
-from benchmarks.common import add_seed_arguments, command_line, map_seeds, markdown_table, seed_table, write_markdown
+from benchmarks.common import add_seed_arguments, command_line, map_seeds, markdown_table, seed_table, with_cme, write_markdown
 from benchmarks.unseen_envs import CUSTOM_ENV, EVAL_EPISODES, EVAL_SEED_OFFSET, evaluate
 from cme_agent import CMEPolicyIteration
 from cme_agent.envs.point_goal import PointGoal2D
@@ -140,7 +140,7 @@ def run_seed(job: tuple[int, int, dict[str, Any], int]) -> dict[str, Any]:
     """Train one agent and measure it: (seed, steps, kwargs, rounds) -> its row."""
     seed, steps, kwargs, rounds = job
     torch.set_num_threads(1)
-    agent = CMEPolicyIteration("CMEPolicy", CUSTOM_ENV, seed=seed, **kwargs).learn(steps)
+    agent = CMEPolicyIteration("CMEPolicy", CUSTOM_ENV, seed=seed, **with_cme(kwargs)).learn(steps)
     dynamics, gamma, l2 = agent.dynamics, agent.gamma, agent.evaluation_config.l2
     with torch.no_grad():
         collection = agent.draw_collection()  # (|C|, 4)

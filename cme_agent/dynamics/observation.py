@@ -62,6 +62,33 @@ def logistic(features: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
     return weights.detach()
 
 
+def fit_change(obs: torch.Tensor, actions: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
+    """W of s' - s = W^T [s, a, 1] by ridge regression: (N, obs_dim), (N, act_dim), (N, obs_dim) -> (f, obs_dim),
+    f = obs_dim + act_dim + 1."""
+    return ridge(affine(obs, actions), next_obs - obs)
+
+
+def change_r2(train: Transitions, holdout: Transitions) -> torch.Tensor:
+    """Held-out R^2 of the linear model of the change, per dim: W by :func:`fit_change` on
+    ``train``'s non-terminal transitions, R^2 = 1 - SSE / SST of s' - s on ``holdout``'s
+    (a dim whose change is constant there counts as explained where W predicts it):
+    (obs_dim,) float64. Actions as the model reads them, (N, act_dim).
+    """
+    fitted, measured = (transition_rows(data, ~data.terminated) for data in (train, holdout))
+    change = fit_change(*fitted)
+    obs, actions, next_obs = measured
+    target = next_obs - obs
+    errors = (target - affine(obs, actions) @ change).square().sum(dim=0)
+    spread = (target - target.mean(dim=0)).square().sum(dim=0)
+    return 1 - errors / spread.clamp_min(1e-12)
+
+
+def transition_rows(data: Transitions, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(s, a, s') of ``rows`` of ``data`` in float64, a as (n, act_dim)."""
+    obs = data.obs[rows].double()
+    return obs, data.actions[rows].double().reshape(len(obs), -1), data.next_obs[rows].double()
+
+
 class ObservationModel(nn.Module):
     """s^' = s + W^T [s, a, 1]; P(terminated | s') and r(s', a) on quadratic features (module docstring).
 
@@ -84,7 +111,7 @@ class ObservationModel(nn.Module):
         obs, next_obs = data.obs.double(), data.next_obs.double()
         actions = data.actions.double().reshape(len(obs), self.act_dim)
         going_on = ~data.terminated
-        self.change.copy_(ridge(affine(obs, actions)[going_on], (next_obs - obs)[going_on]))
+        self.change.copy_(fit_change(obs[going_on], actions[going_on], next_obs[going_on]))
         self.mean.copy_(next_obs.mean(dim=0))
         self.std.copy_(next_obs.std(dim=0).clamp_min(1e-6))
         self.reward_weights.copy_(ridge(self.reward_features(next_obs, actions), data.rewards.double()))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 from typing import TYPE_CHECKING
@@ -15,7 +16,10 @@ from cme_agent.dynamics.cme import CMEDynamics
 
 if TYPE_CHECKING:
     from cme_agent.lookahead import LookaheadPlanner
+    from cme_agent.policy import CMEPolicy
 
+MIN_HELD_OUT = 10
+"""Fewest held-out non-terminal transitions ``kind="auto"`` measures R^2 on; with fewer it keeps the CME."""
 DIVERGENCE_FACTOR = 10.0
 """An SGD update that multiplies the loss on a check batch by more than this is undone."""
 
@@ -44,6 +48,38 @@ class ModelTrainer:
         if len(store) > self.config.refit_size:
             return store.sample(self.config.refit_size, generator)
         return store.get(slice(0, len(store)))
+
+    def choose_kind(
+        self, policy: CMEPolicy, store: TransitionStore, holdout: TransitionStore, logger: Logger
+    ) -> ModelUpdateConfig:
+        """``kind="auto"``: ``"observation"`` where the linear model of s' - s fitted on the first
+        ``refit_size`` transitions of D reaches a held-out R^2 of ``auto_r2`` on every dim
+        (:meth:`LookaheadPlanner.change_r2` on the first ``holdout_size`` held-out ones), else
+        ``"cme"``; the policy is told (:meth:`CMEPolicy.choose_model`) and the choice said. It draws
+        nothing from the agent's RNG, so a run is the one that kind would have made from the start.
+
+        :param policy: the agent's policy, whose ``model_kind`` is ``"auto"``
+        :param store: D
+        :param holdout: the held-out transitions
+        :param logger: SB3's logger
+        :return: the settings with the chosen kind
+        """
+        held_out = holdout.get(slice(0, min(len(holdout), self.config.holdout_size)))
+        if int((~held_out.terminated).sum()) < MIN_HELD_OUT:
+            kind, reason = "cme", f"fewer than {MIN_HELD_OUT} held-out transitions to measure a linear model on"
+        else:
+            r2 = policy.lookahead.change_r2(store.get(slice(0, min(len(store), self.config.refit_size))), held_out)
+            worst = int(r2.argmin())
+            kind = "observation" if float(r2[worst]) >= self.config.auto_r2 else "cme"
+            reason = (
+                f"a linear model of s' - s explains a held-out R^2 of {float(r2[worst]):.3f} of observation dim "
+                f"{worst}, its worst (the model of the observation needs {self.config.auto_r2} on every dim)"
+            )
+        policy.choose_model(kind)
+        said = "the model of the observation (acting looks ahead)" if kind == "observation" else "the CME"
+        logger.info(f"model_update.kind='auto' chose {said}: {reason}")
+        self.config = dataclasses.replace(self.config, kind=kind)
+        return self.config
 
     def fit_observation_model(
         self,

@@ -1,0 +1,112 @@
+"""model_update.kind="auto": the model of the observation where s' - s is linear in (s, a), else the CME."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import pytest
+import torch
+
+from cme_agent import CMEPolicyIteration
+from cme_agent.buffer import Transitions
+from cme_agent.config import ModelUpdateConfig
+from cme_agent.dynamics.observation import change_r2
+from cme_agent.kernel_baseline import KernelPolicyIteration
+from cme_agent.presets import preset_files
+
+PLAIN = {"preset": False, "verbose": 0}
+
+
+def synthetic(n: int, seed: int) -> Transitions:
+    """Dims 0-1 change linearly in (s, a), dim 2 by sin(3 s_0) (nonlinear), dim 3 never changes."""
+    generator = torch.Generator().manual_seed(seed)
+    obs, actions = torch.randn(n, 4, generator=generator), torch.rand(n, 1, generator=generator) * 2 - 1
+    obs[:, 3] = 0.0
+    change = torch.stack(
+        [0.1 * obs[:, 1], -0.2 * obs[:, 0] + 0.5 * actions[:, 0], torch.sin(3 * obs[:, 0]), torch.zeros(n)], dim=1
+    )
+    return Transitions(obs, actions, torch.zeros(n), obs + change, torch.zeros(n, dtype=torch.bool))
+
+
+def state_of(model: CMEPolicyIteration) -> dict[str, torch.Tensor]:
+    return {**model.policy.state_dict(), **{f"store.{k}": v for k, v in model.store.state_dict().items()}}
+
+
+def test_the_held_out_r2_is_one_where_the_change_is_linear_and_low_where_it_is_not() -> None:
+    r2 = change_r2(synthetic(400, seed=0), synthetic(100, seed=1))
+    assert r2.shape == (4,)
+    assert float(r2[0]) > 0.999 and float(r2[1]) > 0.999
+    assert float(r2[2]) < 0.5  # sin(3 s_0) is not linear in s_0
+    assert float(r2[3]) == pytest.approx(1.0)  # a constant change is explained
+
+
+def test_auto_chooses_the_observation_model_on_cartpole_and_the_cme_on_pendulum(capsys) -> None:
+    cartpole = CMEPolicyIteration("CMEPolicy", "CartPole-v1", seed=0, **{**PLAIN, "verbose": 1}).learn(500)
+    said = capsys.readouterr().out
+    assert "model_update.kind='auto' chose the model of the observation" in said and "R^2 of 1.000" in said
+    assert cartpole.model_update_config.kind == cartpole.policy.model_kind == "observation"
+    assert cartpole.policy.lookahead is not None and cartpole.q == 0
+    pendulum = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=0, **PLAIN).learn(400)
+    assert pendulum.model_update_config.kind == pendulum.policy.model_kind == "cme"
+    assert pendulum.policy.lookahead is None and pendulum.q > 0
+    assert not any(key.startswith("lookahead.") for key in pendulum.policy.state_dict())
+
+
+@pytest.mark.parametrize(("env_id", "kind", "steps"), [("CartPole-v1", "observation", 600), ("Pendulum-v1", "cme", 400)])
+def test_auto_makes_the_run_the_chosen_kind_makes_from_the_start(env_id: str, kind: str, steps: int) -> None:
+    auto = CMEPolicyIteration("CMEPolicy", env_id, seed=3, **PLAIN).learn(steps)
+    fixed = CMEPolicyIteration("CMEPolicy", env_id, seed=3, model_update={"kind": kind}, **PLAIN).learn(steps)
+    assert auto.policy.model_kind == kind
+    auto_state, fixed_state = state_of(auto), state_of(fixed)
+    assert auto_state.keys() == fixed_state.keys()
+    for key, value in auto_state.items():
+        torch.testing.assert_close(value, fixed_state[key], rtol=0, atol=0, msg=key)
+
+
+def test_the_choice_survives_save_load_and_an_unchosen_agent_chooses_after_loading(tmp_path) -> None:
+    model = CMEPolicyIteration("CMEPolicy", "CartPole-v1", seed=1, **PLAIN).learn(500)
+    model.save(tmp_path / "chosen.zip")
+    loaded = CMEPolicyIteration.load(tmp_path / "chosen.zip")
+    assert loaded.model_update_config.kind == loaded.policy.model_kind == "observation"
+    torch.testing.assert_close(loaded.policy.lookahead.value_weights, model.policy.lookahead.value_weights)
+    obs = model.store.get(slice(0, 50)).obs.numpy()
+    assert (loaded.predict(obs, deterministic=True)[0] == model.predict(obs, deterministic=True)[0]).all()
+    fresh = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=1, **PLAIN)
+    fresh.save(tmp_path / "fresh.zip")
+    reloaded = CMEPolicyIteration.load(tmp_path / "fresh.zip", env=gym.make("Pendulum-v1"))
+    assert reloaded.policy.model_kind == "auto" and reloaded.policy.lookahead is not None
+    assert reloaded.learn(400).policy.model_kind == "cme" and reloaded.policy.lookahead is None
+
+
+def test_the_presets_keep_the_cme_they_were_measured_with() -> None:
+    for env_id in preset_files():
+        model = CMEPolicyIteration("CMEPolicy", env_id, seed=0, verbose=0)
+        assert model.model_update_config.kind == model.policy.model_kind == "cme", env_id
+        assert model.policy.lookahead is None, env_id
+
+
+def test_auto_keeps_the_cme_with_settings_that_are_the_cmes() -> None:
+    soft = CMEPolicyIteration("CMEPolicy", "CartPole-v1", seed=0, improvement={"method": "soft"}, **PLAIN)
+    refined = CMEPolicyIteration(
+        "CMEPolicy", "Pendulum-v1", seed=0, policy_kwargs={"action_search": {"refine_steps": 2}}, **PLAIN
+    )
+    for model in (soft, refined):
+        assert model.policy.model_kind == "cme" and model.policy.lookahead is None
+
+
+def test_without_held_out_transitions_auto_keeps_the_cme(capsys) -> None:
+    model = CMEPolicyIteration("CMEPolicy", "CartPole-v1", seed=0, model_update={"holdout_fraction": 0.0}, **PLAIN)
+    model.verbose = 1
+    model.learn(400)
+    assert model.policy.model_kind == "cme" and model.policy.lookahead is None
+    assert "fewer than 10 held-out transitions" in capsys.readouterr().out
+
+
+def test_the_threshold_is_checked_and_the_kernel_baseline_stays_a_cme() -> None:
+    for bad in (0.0, 1.5, "high"):
+        with pytest.raises(ValueError, match=r"model_update\.auto_r2"):
+            ModelUpdateConfig(auto_r2=bad)
+    assert ModelUpdateConfig().kind == "auto"
+    with pytest.raises(ValueError, match="invalid for the Kernel baseline"):
+        KernelPolicyIteration("CMEPolicy", "CartPole-v1", model_update={"kind": "observation"}, **PLAIN)
+    kernel = KernelPolicyIteration("CMEPolicy", "CartPole-v1", **PLAIN)
+    assert kernel.policy.model_kind == "cme" and kernel.policy.lookahead is None
