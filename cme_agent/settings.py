@@ -274,7 +274,7 @@ def reward_message(source: str, name: str) -> str:
     """
     if source == "learned":
         return (
-            f"No reward function is known for env {name}: the reward is learned by regression on psi "
-            "(pass reward_fn= for a known one)."
+            f"No reward function is known for env {name}: the reward is learned by regression, on psi with the CME, "
+            "on features of s' with the model of the observation (pass reward_fn= for a known one)."
         )
     return f"Planning with the {source} reward of env {name}."

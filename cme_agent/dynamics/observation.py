@@ -6,7 +6,11 @@ predicts the next observation, whether the episode goes on and the reward:
 - s^' = s + W^T [s, a, 1], W by ridge regression on the non-terminal transitions;
 - P(terminated | s') = sigmoid(u^T f(s')), f = [z, z^2, 1] of the standardised s' (a two-sided
   boundary such as |angle| > 0.2 needs the squares), u by L2-regularised logistic regression;
-- r(s', a) = v^T [f(s'), a, a^2], v by ridge regression.
+- r(s', a) = v^T [f(s'), a, a^2, |P^T z + b|], v by ridge regression (a small ridge: a reward
+  quadratic in s' and a stays exact). The last are M random
+  projections of z, each folded at a random offset: a norm is an average of such terms
+  (E_w |w^T x| is proportional to |x| for directions w uniform on the sphere), so a reward such as
+  -|p' - goal| (a cone, which quadratic features fit badly at its tip) is in their span.
 
 Every fit is a fixed-size linear solve (or a few L-BFGS steps) in its feature count: the cost is
 linear in the transitions it is given, and the weights are buffers (saved with the module).
@@ -15,6 +19,8 @@ Box actions only.
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from torch import nn
 
@@ -22,10 +28,19 @@ from cme_agent.buffer import Transitions
 
 RIDGE = 1e-6
 """Ridge of the least-squares fits, relative to the number of rows."""
+REWARD_RIDGE = 1e-8
+"""Ridge of the reward's fit: with RIDGE the projections would stand in for part of a quadratic reward
+(errors of 5e-3 on a reward quadratic in s'; 5e-5 with this one, and the same fit of a cone)."""
 LOGISTIC_L2 = 1e-4
 """L2 weight of the termination's logistic regression (on the mean log-loss)."""
 LOGISTIC_ITERATIONS = 200
 """L-BFGS iterations of the termination's fit."""
+REWARD_PROJECTIONS = 256
+"""M, the folded random projections |P^T z + b| among the reward's features."""
+PROJECTION_OFFSET = 2.0
+"""The offsets b are uniform in [-PROJECTION_OFFSET, PROJECTION_OFFSET] standard deviations."""
+PROJECTION_SEED = 0
+"""Seed of P and b: fixed, so a refit never moves them and the agent's RNG is not drawn from."""
 
 
 def quadratic(x: torch.Tensor) -> torch.Tensor:
@@ -38,9 +53,9 @@ def affine(obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
     return torch.cat([obs, actions, torch.ones(len(obs), 1, dtype=obs.dtype)], dim=1)
 
 
-def ridge(features: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
-    """argmin_W ||features W - targets||^2 + RIDGE n ||W||^2: (N, f), (N, ...) -> (f, ...)."""
-    gram = features.T @ features + RIDGE * len(features) * torch.eye(features.shape[1], dtype=features.dtype)
+def ridge(features: torch.Tensor, targets: torch.Tensor, scale: float = RIDGE) -> torch.Tensor:
+    """argmin_W ||features W - targets||^2 + scale n ||W||^2: (N, f), (N, ...) -> (f, ...)."""
+    gram = features.T @ features + scale * len(features) * torch.eye(features.shape[1], dtype=features.dtype)
     return torch.linalg.solve(gram, features.T @ targets)
 
 
@@ -90,7 +105,8 @@ def transition_rows(data: Transitions, rows: torch.Tensor) -> tuple[torch.Tensor
 
 
 class ObservationModel(nn.Module):
-    """s^' = s + W^T [s, a, 1]; P(terminated | s') and r(s', a) on quadratic features (module docstring).
+    """s^' = s + W^T [s, a, 1]; P(terminated | s') on quadratic features of s', r(s', a) on those,
+    a, a^2 and folded random projections (module docstring).
 
     :param obs_dim: the observation's dims
     :param act_dim: the Box action's dims
@@ -103,7 +119,13 @@ class ObservationModel(nn.Module):
         self.register_buffer("change", torch.zeros(obs_dim + act_dim + 1, obs_dim, dtype=torch.float64))
         self.register_buffer("mean", torch.zeros(obs_dim, dtype=torch.float64))
         self.register_buffer("std", torch.ones(obs_dim, dtype=torch.float64))
-        self.register_buffer("reward_weights", torch.zeros(state_features + 2 * act_dim, dtype=torch.float64))
+        generator = torch.Generator().manual_seed(PROJECTION_SEED)
+        directions = torch.randn(obs_dim, REWARD_PROJECTIONS, generator=generator, dtype=torch.float64)
+        self.register_buffer("projections", directions / directions.norm(dim=0, keepdim=True))
+        offsets = (2 * torch.rand(REWARD_PROJECTIONS, generator=generator, dtype=torch.float64) - 1) * PROJECTION_OFFSET
+        self.register_buffer("offsets", offsets)
+        reward_features = state_features + 2 * act_dim + REWARD_PROJECTIONS
+        self.register_buffer("reward_weights", torch.zeros(reward_features, dtype=torch.float64))
         self.register_buffer("termination", torch.zeros(state_features, dtype=torch.float64))
 
     def fit(self, data: Transitions) -> None:
@@ -114,16 +136,24 @@ class ObservationModel(nn.Module):
         self.change.copy_(fit_change(obs[going_on], actions[going_on], next_obs[going_on]))
         self.mean.copy_(next_obs.mean(dim=0))
         self.std.copy_(next_obs.std(dim=0).clamp_min(1e-6))
-        self.reward_weights.copy_(ridge(self.reward_features(next_obs, actions), data.rewards.double()))
+        self.reward_weights.copy_(ridge(self.reward_features(next_obs, actions), data.rewards.double(), REWARD_RIDGE))
         self.termination.copy_(logistic(quadratic(self.standardise(next_obs)), data.terminated.double()))
+
+    def _load_from_state_dict(self, state_dict: dict[str, torch.Tensor], prefix: str, *args: Any, **kwargs: Any) -> None:
+        if prefix + "projections" not in state_dict and prefix + "reward_weights" in state_dict:  # saved before them
+            state_dict[prefix + "projections"], state_dict[prefix + "offsets"] = self.projections, self.offsets
+            padding = torch.zeros(REWARD_PROJECTIONS, dtype=torch.float64)
+            state_dict[prefix + "reward_weights"] = torch.cat([state_dict[prefix + "reward_weights"], padding])
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def standardise(self, next_obs: torch.Tensor) -> torch.Tensor:
         """z = (s' - mean) / std: (N, obs_dim) -> (N, obs_dim)."""
         return (next_obs - self.mean) / self.std
 
     def reward_features(self, next_obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        """[z, z^2, 1, a, a^2]: (N, obs_dim), (N, act_dim) -> (N, 2 obs_dim + 1 + 2 act_dim)."""
-        return torch.cat([quadratic(self.standardise(next_obs)), actions, actions.square()], dim=1)
+        """[z, z^2, 1, a, a^2, |P^T z + b|]: (N, obs_dim), (N, act_dim) -> (N, 2 obs_dim + 1 + 2 act_dim + M)."""
+        z = self.standardise(next_obs)
+        return torch.cat([quadratic(z), actions, actions.square(), (z @ self.projections + self.offsets).abs()], dim=1)
 
     def next_obs(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """s^': (N, obs_dim), (N, act_dim) -> (N, obs_dim), float64."""
