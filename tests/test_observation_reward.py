@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
+from conftest import linear_system
 
 from cme_agent.buffer import Transitions
 from cme_agent.dynamics.observation import REWARD_PROJECTIONS, ObservationModel, quadratic, ridge
@@ -51,3 +54,16 @@ def test_a_model_saved_before_the_projections_loads_and_predicts_as_it_did() -> 
     expected = torch.cat([features, data.actions.double().square()], 1) @ old["reward_weights"]
     torch.testing.assert_close(loaded.reward(data.next_obs, data.actions), expected)
     torch.testing.assert_close(loaded.next_obs(data.obs, data.actions), model.next_obs(data.obs, data.actions))
+
+
+def test_the_reward_of_ending_is_learned_apart_and_weighed_by_the_termination() -> None:
+    data = linear_system(4000, seed=4)  # terminated where |s'_1| > 0.15
+    data = dataclasses.replace(data, rewards=torch.where(data.terminated, -10.0, 1.0))
+    model = ObservationModel(obs_dim=4, act_dim=1)
+    model.fit(data)
+    assert float(model.terminal_reward) == -10.0
+    torch.testing.assert_close(model.reward(data.next_obs, data.actions), torch.ones(len(data), dtype=torch.float64))
+    calm, falling = torch.zeros(1, 4), torch.tensor([[0.0, 0.3, 0.0, 0.0]])  # s'_1 stays near 0, or passes 0.15
+    _, going_on, rewards = model.step(torch.cat([calm, falling]), torch.zeros(1, 1))
+    assert going_on[0] > 0.9 > 0.1 > going_on[1]
+    torch.testing.assert_close(rewards, going_on * 1.0 + (1 - going_on) * -10.0)

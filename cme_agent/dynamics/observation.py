@@ -6,8 +6,10 @@ predicts the next observation, whether the episode goes on and the reward:
 - s^' = s + W^T [s, a, 1], W by ridge regression on the non-terminal transitions;
 - P(terminated | s') = sigmoid(u^T f(s')), f = [z, z^2, 1] of the standardised s' (a two-sided
   boundary such as |angle| > 0.2 needs the squares), u by L2-regularised logistic regression;
-- r(s', a) = v^T [f(s'), a, a^2, |P^T z + b|], v by ridge regression (a small ridge: a reward
-  quadratic in s' and a stays exact). The last are M random
+- the reward of going on, r(s', a) = v^T [f(s'), a, a^2, |P^T z + b|], v by ridge regression on the
+  non-terminal transitions (a small ridge: a reward quadratic in s' and a stays exact), within the
+  range of their rewards, and the mean reward of the terminal ones, r_end: a step is worth
+  g r(s', a) + (1 - g) r_end. The last features are M random
   projections of z, each folded at a random offset: a norm is an average of such terms
   (E_w |w^T x| is proportional to |x| for directions w uniform on the sphere), so a reward such as
   -|p' - goal| (a cone, which quadratic features fit badly at its tip) is in their span.
@@ -105,8 +107,8 @@ def transition_rows(data: Transitions, rows: torch.Tensor) -> tuple[torch.Tensor
 
 
 class ObservationModel(nn.Module):
-    """s^' = s + W^T [s, a, 1]; P(terminated | s') on quadratic features of s', r(s', a) on those,
-    a, a^2 and folded random projections (module docstring).
+    """s^' = s + W^T [s, a, 1]; P(terminated | s') on quadratic features of s'; the reward of going on
+    on those, a, a^2 and folded random projections, and of ending (module docstring).
 
     :param obs_dim: the observation's dims
     :param act_dim: the Box action's dims
@@ -126,17 +128,23 @@ class ObservationModel(nn.Module):
         self.register_buffer("offsets", offsets)
         reward_features = state_features + 2 * act_dim + REWARD_PROJECTIONS
         self.register_buffer("reward_weights", torch.zeros(reward_features, dtype=torch.float64))
+        self.register_buffer("reward_range", torch.tensor([-torch.inf, torch.inf], dtype=torch.float64))
         self.register_buffer("termination", torch.zeros(state_features, dtype=torch.float64))
+        self.register_buffer("terminal_reward", torch.zeros((), dtype=torch.float64))
 
     def fit(self, data: Transitions) -> None:
-        """Fit W, the standardisation of s', v and u on ``data`` (Box actions (N, act_dim)), in float64."""
+        """Fit W, the standardisation of s', v, r_end and u on ``data`` (Box actions (N, act_dim)), in float64."""
         obs, next_obs = data.obs.double(), data.next_obs.double()
         actions = data.actions.double().reshape(len(obs), self.act_dim)
         going_on = ~data.terminated
         self.change.copy_(fit_change(obs[going_on], actions[going_on], next_obs[going_on]))
         self.mean.copy_(next_obs.mean(dim=0))
         self.std.copy_(next_obs.std(dim=0).clamp_min(1e-6))
-        self.reward_weights.copy_(ridge(self.reward_features(next_obs, actions), data.rewards.double(), REWARD_RIDGE))
+        rewards = data.rewards.double()
+        features = self.reward_features(next_obs[going_on], actions[going_on])
+        self.reward_weights.copy_(ridge(features, rewards[going_on], REWARD_RIDGE))
+        self.reward_range.copy_(torch.stack([rewards[going_on].min(), rewards[going_on].max()]))
+        self.terminal_reward.copy_(rewards[~going_on].mean() if (~going_on).any() else torch.zeros((), dtype=torch.float64))
         self.termination.copy_(logistic(quadratic(self.standardise(next_obs)), data.terminated.double()))
 
     def _load_from_state_dict(self, state_dict: dict[str, torch.Tensor], prefix: str, *args: Any, **kwargs: Any) -> None:
@@ -144,6 +152,8 @@ class ObservationModel(nn.Module):
             state_dict[prefix + "projections"], state_dict[prefix + "offsets"] = self.projections, self.offsets
             padding = torch.zeros(REWARD_PROJECTIONS, dtype=torch.float64)
             state_dict[prefix + "reward_weights"] = torch.cat([state_dict[prefix + "reward_weights"], padding])
+            state_dict[prefix + "reward_range"] = self.reward_range  # and r_end 0 until the next fit
+            state_dict[prefix + "terminal_reward"] = self.terminal_reward
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def standardise(self, next_obs: torch.Tensor) -> torch.Tensor:
@@ -165,13 +175,16 @@ class ObservationModel(nn.Module):
         return torch.sigmoid(quadratic(self.standardise(next_obs.double())) @ self.termination)
 
     def reward(self, next_obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        """r(s', a): (N, obs_dim), (N, act_dim) -> (N,), float64."""
-        return self.reward_features(next_obs.double(), actions.double()) @ self.reward_weights
+        """r(s', a) of going on, within the range of the rewards it was fitted on (the projections grow linearly off the
+        data, and a planner heads for any state it over-rates and shuns any it under-rates): (N, obs_dim),
+        (N, act_dim) -> (N,), float64."""
+        fitted = self.reward_features(next_obs.double(), actions.double()) @ self.reward_weights
+        return fitted.clamp(*self.reward_range)
 
     @torch.no_grad()
     def step(self, obs: torch.Tensor, candidates: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Every state with every candidate, state-major: the next observations (N K, obs_dim), the
-        probability of going on (N K,) and the reward (N K,), float32.
+        probability of going on g (N K,) and the reward g r(s', a) + (1 - g) r_end (N K,), float32.
 
         :param obs: (N, obs_dim) observations
         :param candidates: (K, act_dim) Box actions
@@ -180,5 +193,6 @@ class ObservationModel(nn.Module):
         states = obs.double().repeat_interleave(k, dim=0)
         actions = candidates.double().reshape(k, self.act_dim).repeat(n, 1)
         predicted = self.next_obs(states, actions)
-        going_on, rewards = 1 - self.terminates(predicted), self.reward(predicted, actions)
+        going_on = 1 - self.terminates(predicted)
+        rewards = going_on * self.reward(predicted, actions) + (1 - going_on) * self.terminal_reward
         return predicted.float(), going_on.float(), rewards.float()
