@@ -189,7 +189,7 @@ class ModelUpdateConfig:
         ``action_search.lookahead_depth`` steps ahead, :class:`~cme_agent.lookahead.LookaheadPlanner`)
         or ``"auto"``, chosen at the first iteration: ``"observation"`` where a linear model of
         s' - s reaches a held-out R^2 of ``auto_r2`` on every dim, else ``"cme"`` (and ``"cme"``
-        with the soft improvement or ``refine_steps``, which are the CME's)
+        with the soft improvement, which is the CME's)
     :param auto_r2: the held-out R^2 in (0, 1] that ``kind="auto"`` asks of every dim
     """
 
@@ -414,7 +414,8 @@ class ActionSearchConfig:
         regular grid of ``grid_size``
     :param max_grid_dims: largest action dimension searched on a grid
     :param n_samples: uniformly sampled candidates (fixed at construction) in higher dimensions
-    :param refine_steps: projected gradient-ascent steps on Q through psi from the best candidate
+    :param refine_steps: projected gradient-ascent steps from the best candidate, on Q through
+        psi (the CME) or on the first action's looked-ahead value through the model of the observation
     :param refine_lr: step of the refinement, in normalised action units
     :param lookahead_depth: env steps the action looks ahead through the model of the
         observation (``model_update.kind="observation"`` only; 1: greedy on Q); None: 3 where

@@ -112,26 +112,35 @@ class LookaheadPlanner(nn.Module):
         """The mean of :meth:`prediction_errors` over ``data``."""
         return float(self.prediction_errors(data)[1].mean())
 
-    @torch.no_grad()
-    def step(self, obs: torch.Tensor, candidates: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Every state with every candidate, state-major: s^' (N K, obs_dim), g = P(going on) (N K,)
-        and the reward (N K,), float32; the known reward and termination where given.
+    def transition(self, obs: torch.Tensor, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Paired rows, differentiable in the actions: s^' (N, obs_dim), g = P(going on) (N,) and the
+        reward (N,), float32; the known reward and termination where given.
 
         :param obs: (N, obs_dim) observations
-        :param candidates: (K, act_dim) Box actions or (K,) Discrete indices, env units
+        :param actions: (N, act_dim) Box actions or (N,) Discrete indices, env units
         """
-        size, actions = max(1, STEP_ROWS // len(candidates)), self.model_actions(candidates)
-        blocks = [self.model.step(obs[start : start + size], actions) for start in range(0, len(obs), size)]
-        next_obs, going_on, rewards = (torch.cat(parts) for parts in zip(*blocks, strict=True))
+        next_obs, going_on, rewards = (part.float() for part in self.model.transition(obs, self.model_actions(actions)))
         spec = self.reward_spec
         if spec is not None:
             if spec.is_terminal is not None:
                 going_on = (~spec.is_terminal(next_obs)).float()
-            n, k = len(obs), len(candidates)
-            actions = candidates.repeat(n, *([1] * (candidates.dim() - 1)))
-            rewards = spec.step_reward(obs.float().repeat_interleave(k, dim=0), actions).float()
-            rewards = rewards + spec.terminal_bonus * (1 - going_on)
+            rewards = spec.step_reward(obs.float(), actions).float() + spec.terminal_bonus * (1 - going_on)
         return next_obs, going_on, rewards
+
+    def step(self, obs: torch.Tensor, candidates: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`transition` of every state with every candidate, state-major, :data:`STEP_ROWS` pairs at
+        a time: (N K, obs_dim), (N K,), (N K,).
+
+        :param obs: (N, obs_dim) observations
+        :param candidates: (K, act_dim) Box actions or (K,) Discrete indices, env units
+        """
+        k, size = len(candidates), max(1, STEP_ROWS // len(candidates))
+        blocks = []
+        for start in range(0, len(obs), size):
+            states = obs[start : start + size]
+            actions = candidates.repeat(len(states), *([1] * (candidates.dim() - 1)))
+            blocks.append(self.transition(states.repeat_interleave(k, dim=0), actions))
+        return tuple(torch.cat(parts) for parts in zip(*blocks, strict=True))
 
     @torch.no_grad()
     def evaluate(
@@ -191,11 +200,28 @@ class LookaheadPlanner(nn.Module):
         best = values.argmax(dim=1)
         return candidates[best], values.gather(1, best.unsqueeze(1)).squeeze(1)
 
+    def action_values(
+        self, phi: FeatureMap, obs: torch.Tensor, candidates: torch.Tensor, actions: torch.Tensor
+    ) -> torch.Tensor:
+        """r + gamma g L_{d-1}(s^'_a) of each state's own first action, the candidates after it,
+        differentiable in the actions (the continuous search of the first action): (N,).
+
+        :param phi: the state features
+        :param obs: (N, obs_dim) observations
+        :param candidates: (K, act_dim) the actions of the later steps
+        :param actions: (N, act_dim) Box actions, env units
+        """
+        next_obs, going_on, rewards = self.transition(obs, actions)
+        return rewards + self.gamma * going_on * self.leaf_values(phi, next_obs, candidates, self.depth - 1)
+
     def backed_up(self, phi: FeatureMap, obs: torch.Tensor, candidates: torch.Tensor, remaining: int) -> torch.Tensor:
         """r + gamma g L_remaining(s^'_a) at every state and candidate: (N, obs_dim) -> (N, K)."""
         next_obs, going_on, rewards = self.step(obs, candidates)
-        if remaining == 0:
-            tail = blocked_values(phi, next_obs, self.value_weights)
-        else:
-            tail = self.backed_up(phi, next_obs, candidates, remaining - 1).max(dim=1).values
+        tail = self.leaf_values(phi, next_obs, candidates, remaining)
         return (rewards + self.gamma * going_on * tail).reshape(len(obs), len(candidates))
+
+    def leaf_values(self, phi: FeatureMap, obs: torch.Tensor, candidates: torch.Tensor, remaining: int) -> torch.Tensor:
+        """L_remaining(s): <w, phi(s)> at 0, else the best of :meth:`backed_up`: (M, obs_dim) -> (M,)."""
+        if remaining == 0:
+            return blocked_values(phi, obs, self.value_weights)
+        return self.backed_up(phi, obs, candidates, remaining - 1).max(dim=1).values

@@ -167,9 +167,9 @@ class CMEPolicy(BasePolicy):
 
     def _make_lookahead(self, reward: RewardSpec | None) -> LookaheadPlanner | None:
         """The planner through the model of the observation, or None with the CME."""
-        depth, search = self.action_search.lookahead_depth, self.action_search
-        if self.model_kind == "auto" and (self.soft or search.refine_steps > 0):
-            self.model_kind = "cme"  # the soft policy and refined actions belong to the CME
+        depth = self.action_search.lookahead_depth
+        if self.model_kind == "auto" and self.soft:
+            self.model_kind = "cme"  # the soft policy belongs to the CME
         if self.model_kind == "cme":
             if depth not in (None, 1):
                 raise ValueError(
@@ -177,12 +177,10 @@ class CMEPolicy(BasePolicy):
                     "looking ahead needs the model of the observation (model_update.kind='observation')"
                 )
             return None
-        if self.soft or search.refine_steps > 0:
-            setting = "improvement.method='soft'" if self.soft else f"action_search.refine_steps={search.refine_steps}"
+        if self.soft:
             raise ValueError(
-                f"{setting} is invalid with model_update.kind='observation': it acts by lookahead over the fixed "
-                "candidates with the smoothed greedy step (pass improvement={'method': 'smoothed_greedy'} and "
-                "action_search refine_steps=0 where an env's preset sets them)"
+                "improvement.method='soft' is invalid with model_update.kind='observation': it acts by lookahead "
+                "with the smoothed greedy step (pass improvement={'method': 'smoothed_greedy'} where an env's preset sets it)"
             )
         n_candidates = len(self.candidates)
         depth = default_depth(n_candidates) if depth is None else depth
@@ -235,6 +233,11 @@ class CMEPolicy(BasePolicy):
             gamma=self.gamma,
         )
         return data
+
+    @property
+    def refines(self) -> bool:
+        """Whether greedy Box actions are refined from the best candidate (``action_search.refine_steps``)."""
+        return not self.dynamics.action_encoder.discrete and self.action_search.refine_steps > 0
 
     @property
     def soft(self) -> bool:
@@ -307,7 +310,7 @@ class CMEPolicy(BasePolicy):
         state_only = phi @ self.theta_phi
         base = self._candidate_step_rewards(obs) + state_only.unsqueeze(1)
         values, best = base.new_empty(n), torch.empty(n, dtype=torch.long, device=obs.device)
-        refine = not dynamics.action_encoder.discrete and self.action_search.refine_steps > 0
+        refine = self.refines
         refined = []
         for rows in blocks:
             length = rows.stop - rows.start
@@ -388,7 +391,11 @@ class CMEPolicy(BasePolicy):
         """The greedy actions and their Q values (with the lookahead: its actions and their looked-ahead
         values): (N, obs_dim) -> (N, act_dim) or (N,), and (N,)."""
         if self.lookahead is not None:
-            return self.lookahead.greedy(self.dynamics.phi, obs, self.candidates)
+            actions, values = self.lookahead.greedy(self.dynamics.phi, obs, self.candidates)
+            if not self.refines:
+                return actions, values
+            q = functools.partial(self.lookahead.action_values, self.dynamics.phi, obs, self.candidates)
+            return self._ascend(lambda encoded: q(self.dynamics.action_encoder.decode(encoded)), actions, values)
         step = self.greedy_step(obs)
         return step.actions, step.values
 
@@ -405,8 +412,15 @@ class CMEPolicy(BasePolicy):
         :param state_only: (N,) Q's term without the action, <theta_phi, phi(s)>
         :return: the refined actions (N, act_dim) and their Q (N,), never below the candidate's
         """
+        return self._ascend(functools.partial(self._q_in_action, obs, state, state_only), actions, values)
+
+    def _ascend(
+        self, q: Callable[[torch.Tensor], torch.Tensor], actions: torch.Tensor, values: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """:func:`projected_ascent` on ``q`` (of normalised actions, (N, act_dim) -> (N,)) from the best
+        candidates (N, act_dim) in env units and their values (N,): the refined actions in env units and
+        their values, each kept only where it beats the candidate's."""
         encoder, search = self.dynamics.action_encoder, self.action_search
-        q = functools.partial(self._q_in_action, obs, state, state_only)
         encoded, refined_values = projected_ascent(q, encoder.encode(actions), search.refine_steps, search.refine_lr)
         better = refined_values > values
         return torch.where(better.unsqueeze(1), encoder.decode(encoded), actions), torch.where(better, refined_values, values)
@@ -433,7 +447,7 @@ class CMEPolicy(BasePolicy):
         :param obs: (N, obs_dim) observations
         :return: (N, act_dim) Box actions in env units or (N,) Discrete indices
         """
-        if not self.dynamics.action_encoder.discrete and self.action_search.refine_steps > 0:
+        if self.refines:
             return self.greedy(obs)[0]
         state = self.dynamics.state_factor(obs)[:, : self.theta_psi.shape[0]]
         return self.candidates[

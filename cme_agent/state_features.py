@@ -135,17 +135,27 @@ class RBFGrid(StateFeatureMap):
         part of ``out`` (N, p), in place. The product of every factor but the first is built from
         the last factor backwards, so that each product's inner dimension is the long one (one
         vectorised pass per product); the first factor is applied as the product is written."""
-        tail = factors[-1] if len(factors) > 1 else factors[0].new_ones(factors[0].shape[0], 1)
-        for factor in reversed(factors[1:-1]):
-            tail = (factor[:, :, None] * tail[:, None, :]).flatten(1)
+        tail = RBFGrid._tail(factors)
         grid = out[:, :-1].unflatten(1, (factors[0].shape[1], -1))
         if subtract:
             grid.addcmul_(factors[0][:, :, None], tail[:, None, :], value=-1)
         else:
             torch.mul(factors[0][:, :, None], tail[:, None, :], out=grid)
 
+    @staticmethod
+    def _tail(factors: list[torch.Tensor]) -> torch.Tensor:
+        """The tensor product of every factor but the first, (N, prod_{d>0} r_d), from the last backwards."""
+        tail = factors[-1] if len(factors) > 1 else factors[0].new_ones(factors[0].shape[0], 1)
+        for factor in reversed(factors[1:-1]):
+            tail = (factor[:, :, None] * tail[:, None, :]).flatten(1)
+        return tail
+
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         """:param obs: (N, obs_dim) observations. :return: (N, p) features."""
+        if obs.requires_grad and torch.is_grad_enabled():  # differentiable (out= is not): a search through the model
+            factors = self.bumps(obs)
+            grid = (factors[0][:, :, None] * self._tail(factors)[:, None, :]).flatten(1)
+            return torch.cat([grid, obs.new_ones(obs.shape[0], 1)], dim=1)
         out = obs.new_empty(obs.shape[0], self.width)
         out[:, -1] = 1
         self._write_grid(out, self.bumps(obs))

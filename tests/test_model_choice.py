@@ -84,13 +84,13 @@ def test_the_presets_keep_the_cme_they_were_measured_with() -> None:
         assert model.policy.lookahead is None, env_id
 
 
-def test_auto_keeps_the_cme_with_settings_that_are_the_cmes() -> None:
+def test_auto_keeps_the_cme_with_the_soft_improvement_and_refines_either_model() -> None:
     soft = CMEPolicyIteration("CMEPolicy", "CartPole-v1", seed=0, improvement={"method": "soft"}, **PLAIN)
+    assert soft.policy.model_kind == "cme" and soft.policy.lookahead is None
     refined = CMEPolicyIteration(
         "CMEPolicy", "Pendulum-v1", seed=0, policy_kwargs={"action_search": {"refine_steps": 2}}, **PLAIN
     )
-    for model in (soft, refined):
-        assert model.policy.model_kind == "cme" and model.policy.lookahead is None
+    assert refined.policy.model_kind == "auto" and refined.policy.lookahead is not None and refined.policy.refines
 
 
 def test_without_held_out_transitions_auto_keeps_the_cme(capsys) -> None:

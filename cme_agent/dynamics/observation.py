@@ -10,9 +10,10 @@ predicts the next observation, whether the episode goes on and the reward:
   non-terminal transitions (a small ridge: a reward quadratic in s' and a stays exact), within the
   range of their rewards, and the mean reward of the terminal ones, r_end: a step is worth
   g r(s', a) + (1 - g) r_end. The last features are M random
-  projections of z, each folded at a random offset: a norm is an average of such terms
-  (E_w |w^T x| is proportional to |x| for directions w uniform on the sphere), so a reward such as
-  -|p' - goal| (a cone, which quadratic features fit badly at its tip) is in their span.
+  projections of z, each folded where it passes a transition of the fit: a norm is an average of
+  such terms (E_w |w^T x| is proportional to |x| for directions w uniform on the sphere), so a
+  reward such as -|p' - goal| (a cone, which quadratic features fit badly at its tip) is in their
+  span, and the folds lie where the data are (where the agent goes, it needs the reward's shape).
 
 Every fit is a fixed-size linear solve (or a few L-BFGS steps) in its feature count: the cost is
 linear in the transitions it is given, and the weights are buffers (saved with the module).
@@ -39,10 +40,8 @@ LOGISTIC_ITERATIONS = 200
 """L-BFGS iterations of the termination's fit."""
 REWARD_PROJECTIONS = 256
 """M, the folded random projections |P^T z + b| among the reward's features."""
-PROJECTION_OFFSET = 2.0
-"""The offsets b are uniform in [-PROJECTION_OFFSET, PROJECTION_OFFSET] standard deviations."""
 PROJECTION_SEED = 0
-"""Seed of P and b: fixed, so a refit never moves them and the agent's RNG is not drawn from."""
+"""Seed of P and of the transitions each fit folds them at: fixed, so the agent's RNG is not drawn from."""
 
 
 def quadratic(x: torch.Tensor) -> torch.Tensor:
@@ -124,8 +123,7 @@ class ObservationModel(nn.Module):
         generator = torch.Generator().manual_seed(PROJECTION_SEED)
         directions = torch.randn(obs_dim, REWARD_PROJECTIONS, generator=generator, dtype=torch.float64)
         self.register_buffer("projections", directions / directions.norm(dim=0, keepdim=True))
-        offsets = (2 * torch.rand(REWARD_PROJECTIONS, generator=generator, dtype=torch.float64) - 1) * PROJECTION_OFFSET
-        self.register_buffer("offsets", offsets)
+        self.register_buffer("offsets", torch.zeros(REWARD_PROJECTIONS, dtype=torch.float64))
         reward_features = state_features + 2 * act_dim + REWARD_PROJECTIONS
         self.register_buffer("reward_weights", torch.zeros(reward_features, dtype=torch.float64))
         self.register_buffer("reward_range", torch.tensor([-torch.inf, torch.inf], dtype=torch.float64))
@@ -141,6 +139,7 @@ class ObservationModel(nn.Module):
         self.mean.copy_(next_obs.mean(dim=0))
         self.std.copy_(next_obs.std(dim=0).clamp_min(1e-6))
         rewards = data.rewards.double()
+        self.fold_at(self.standardise(next_obs[going_on]))
         features = self.reward_features(next_obs[going_on], actions[going_on])
         self.reward_weights.copy_(ridge(features, rewards[going_on], REWARD_RIDGE))
         self.reward_range.copy_(torch.stack([rewards[going_on].min(), rewards[going_on].max()]))
@@ -155,6 +154,13 @@ class ObservationModel(nn.Module):
             state_dict[prefix + "reward_range"] = self.reward_range  # and r_end 0 until the next fit
             state_dict[prefix + "terminal_reward"] = self.terminal_reward
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    def fold_at(self, z: torch.Tensor) -> None:
+        """Offsets b_m = -P_m^T z_m that fold each projection where it passes one of the rows z (n, obs_dim),
+        drawn with replacement by a generator of :data:`PROJECTION_SEED` (none: the offsets stay)."""
+        if len(z):
+            rows = torch.randint(len(z), (REWARD_PROJECTIONS,), generator=torch.Generator().manual_seed(PROJECTION_SEED))
+            self.offsets.copy_(-(z[rows] * self.projections.T).sum(dim=1))
 
     def standardise(self, next_obs: torch.Tensor) -> torch.Tensor:
         """z = (s' - mean) / std: (N, obs_dim) -> (N, obs_dim)."""
@@ -181,18 +187,25 @@ class ObservationModel(nn.Module):
         fitted = self.reward_features(next_obs.double(), actions.double()) @ self.reward_weights
         return fitted.clamp(*self.reward_range)
 
-    @torch.no_grad()
+    def transition(self, obs: torch.Tensor, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Paired rows, differentiable in both: s^' (N, obs_dim), the probability of going on g (N,) and
+        the reward g r(s^', a) + (1 - g) r_end (N,), float64.
+
+        :param obs: (N, obs_dim) observations
+        :param actions: (N, act_dim) Box actions
+        """
+        predicted = self.next_obs(obs, actions)
+        going_on = 1 - self.terminates(predicted)
+        rewards = going_on * self.reward(predicted, actions) + (1 - going_on) * self.terminal_reward
+        return predicted, going_on, rewards
+
     def step(self, obs: torch.Tensor, candidates: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Every state with every candidate, state-major: the next observations (N K, obs_dim), the
-        probability of going on g (N K,) and the reward g r(s', a) + (1 - g) r_end (N K,), float32.
+        """:meth:`transition` of every state with every candidate, state-major: (N K, obs_dim), (N K,)
+        and (N K,), float32.
 
         :param obs: (N, obs_dim) observations
         :param candidates: (K, act_dim) Box actions
         """
         n, k = len(obs), len(candidates)
-        states = obs.double().repeat_interleave(k, dim=0)
         actions = candidates.double().reshape(k, self.act_dim).repeat(n, 1)
-        predicted = self.next_obs(states, actions)
-        going_on = 1 - self.terminates(predicted)
-        rewards = going_on * self.reward(predicted, actions) + (1 - going_on) * self.terminal_reward
-        return predicted.float(), going_on.float(), rewards.float()
+        return tuple(part.float() for part in self.transition(obs.double().repeat_interleave(k, dim=0), actions))
