@@ -1,5 +1,4 @@
-"""The learned reward of the model of the observation: a cone such as -|p' - goal| is in its span, finest where
-the data are."""
+"""The learned reward of the model of the observation: a cone such as -|p' - goal| is in its span."""
 
 from __future__ import annotations
 
@@ -68,33 +67,3 @@ def test_the_reward_of_ending_is_learned_apart_and_weighed_by_the_termination() 
     _, going_on, rewards = model.step(torch.cat([calm, falling]), torch.zeros(1, 1))
     assert going_on[0] > 0.9 > 0.1 > going_on[1]
     torch.testing.assert_close(rewards, going_on * 1.0 + (1 - going_on) * -10.0)
-
-
-def test_the_projections_fold_at_the_data_so_the_reward_is_finest_where_the_agent_goes(monkeypatch) -> None:
-    # an agent that has found the goal: most of its transitions lie within 0.2 of it
-    broad, near = point_mass(1000, seed=5), point_mass(3000, seed=6)
-    near = dataclasses.replace(near, obs=near.obs * torch.tensor([0.1, 0.1, 0.3, 0.3]) + torch.tensor([0.6, -0.4, 0.0, 0.0]))
-    velocity = 0.9 * near.obs[:, 2:] + 0.1 * near.actions
-    next_obs = torch.cat([near.obs[:, :2] + 0.1 * velocity, velocity], dim=1)
-    rewards = -(next_obs[:, :2].double() - GOAL).norm(dim=1) - 0.05 * near.actions.double().square().sum(dim=1)
-    near = dataclasses.replace(near, next_obs=next_obs, rewards=rewards.float())
-    train = Transitions(*(torch.cat([getattr(broad, f.name), getattr(near, f.name)]) for f in dataclasses.fields(Transitions)))
-    test = dataclasses.replace(near, obs=near.obs.flip(0), actions=near.actions.flip(0))  # fresh pairs near the goal
-    velocity = 0.9 * test.obs[:, 2:] + 0.1 * test.actions
-    test_next = torch.cat([test.obs[:, :2] + 0.1 * velocity, velocity], dim=1).double()
-    truth = -(test_next[:, :2] - GOAL).norm(dim=1) - 0.05 * test.actions.double().square().sum(dim=1)
-
-    def near_goal_error(model: ObservationModel) -> float:
-        model.fit(train)
-        return float((model.reward(test_next, test.actions) - truth).square().mean().sqrt())
-
-    folded = ObservationModel(obs_dim=4, act_dim=2)
-    error = near_goal_error(folded)
-    z = folded.standardise(train.next_obs.double())
-    kinks = z @ folded.projections + folded.offsets  # each projection's fold passes a transition of the fit
-    assert bool((kinks.abs().min(dim=0).values < 1e-9).all())
-    spread = ObservationModel(obs_dim=4, act_dim=2)  # folds spread uniformly over +-2 std instead
-    offsets = torch.rand(REWARD_PROJECTIONS, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 4 - 2
-    monkeypatch.setattr(spread, "fold_at", lambda z: spread.offsets.copy_(offsets))
-    spread_error = near_goal_error(spread)
-    assert error < 0.7 * spread_error, (error, spread_error)

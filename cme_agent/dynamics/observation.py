@@ -10,10 +10,9 @@ predicts the next observation, whether the episode goes on and the reward:
   non-terminal transitions (a small ridge: a reward quadratic in s' and a stays exact), within the
   range of their rewards, and the mean reward of the terminal ones, r_end: a step is worth
   g r(s', a) + (1 - g) r_end. The last features are M random
-  projections of z, each folded where it passes a transition of the fit: a norm is an average of
-  such terms (E_w |w^T x| is proportional to |x| for directions w uniform on the sphere), so a
-  reward such as -|p' - goal| (a cone, which quadratic features fit badly at its tip) is in their
-  span, and the folds lie where the data are (where the agent goes, it needs the reward's shape).
+  projections of z, each folded at a random offset: a norm is an average of such terms
+  (E_w |w^T x| is proportional to |x| for directions w uniform on the sphere), so a reward such as
+  -|p' - goal| (a cone, which quadratic features fit badly at its tip) is in their span.
 
 Every fit is a fixed-size linear solve (or a few L-BFGS steps) in its feature count: the cost is
 linear in the transitions it is given, and the weights are buffers (saved with the module).
@@ -40,8 +39,10 @@ LOGISTIC_ITERATIONS = 200
 """L-BFGS iterations of the termination's fit."""
 REWARD_PROJECTIONS = 256
 """M, the folded random projections |P^T z + b| among the reward's features."""
+PROJECTION_OFFSET = 2.0
+"""The offsets b are uniform in [-PROJECTION_OFFSET, PROJECTION_OFFSET] standard deviations."""
 PROJECTION_SEED = 0
-"""Seed of P and of the transitions each fit folds them at: fixed, so the agent's RNG is not drawn from."""
+"""Seed of P and b: fixed, so a refit never moves them and the agent's RNG is not drawn from."""
 
 
 def quadratic(x: torch.Tensor) -> torch.Tensor:
@@ -123,7 +124,8 @@ class ObservationModel(nn.Module):
         generator = torch.Generator().manual_seed(PROJECTION_SEED)
         directions = torch.randn(obs_dim, REWARD_PROJECTIONS, generator=generator, dtype=torch.float64)
         self.register_buffer("projections", directions / directions.norm(dim=0, keepdim=True))
-        self.register_buffer("offsets", torch.zeros(REWARD_PROJECTIONS, dtype=torch.float64))
+        offsets = (2 * torch.rand(REWARD_PROJECTIONS, generator=generator, dtype=torch.float64) - 1) * PROJECTION_OFFSET
+        self.register_buffer("offsets", offsets)
         reward_features = state_features + 2 * act_dim + REWARD_PROJECTIONS
         self.register_buffer("reward_weights", torch.zeros(reward_features, dtype=torch.float64))
         self.register_buffer("reward_range", torch.tensor([-torch.inf, torch.inf], dtype=torch.float64))
@@ -139,7 +141,6 @@ class ObservationModel(nn.Module):
         self.mean.copy_(next_obs.mean(dim=0))
         self.std.copy_(next_obs.std(dim=0).clamp_min(1e-6))
         rewards = data.rewards.double()
-        self.fold_at(self.standardise(next_obs[going_on]))
         features = self.reward_features(next_obs[going_on], actions[going_on])
         self.reward_weights.copy_(ridge(features, rewards[going_on], REWARD_RIDGE))
         self.reward_range.copy_(torch.stack([rewards[going_on].min(), rewards[going_on].max()]))
@@ -154,13 +155,6 @@ class ObservationModel(nn.Module):
             state_dict[prefix + "reward_range"] = self.reward_range  # and r_end 0 until the next fit
             state_dict[prefix + "terminal_reward"] = self.terminal_reward
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
-
-    def fold_at(self, z: torch.Tensor) -> None:
-        """Offsets b_m = -P_m^T z_m that fold each projection where it passes one of the rows z (n, obs_dim),
-        drawn with replacement by a generator of :data:`PROJECTION_SEED` (none: the offsets stay)."""
-        if len(z):
-            rows = torch.randint(len(z), (REWARD_PROJECTIONS,), generator=torch.Generator().manual_seed(PROJECTION_SEED))
-            self.offsets.copy_(-(z[rows] * self.projections.T).sum(dim=1))
 
     def standardise(self, next_obs: torch.Tensor) -> torch.Tensor:
         """z = (s' - mean) / std: (N, obs_dim) -> (N, obs_dim)."""
