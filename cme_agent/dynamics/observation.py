@@ -12,7 +12,15 @@ predicts the next observation, whether the episode goes on and the reward:
   g r(s', a) + (1 - g) r_end. The last features are M random
   projections of z, each folded at a random offset: a norm is an average of such terms
   (E_w |w^T x| is proportional to |x| for directions w uniform on the sphere), so a reward such as
-  -|p' - goal| (a cone, which quadratic features fit badly at its tip) is in their span.
+  -|p' - goal| (a cone, which quadratic features fit badly at its tip) is in their span. The
+  directions are drawn in a learned metric: a first fit with directions uniform on the sphere gives the
+  reward's gradients in z, their expected outer product M = E[grad grad^T] (the EGOP, large along the
+  directions the reward changes with) maps the directions to M w / |M w|, and the reward is fitted
+  again on those. A reward of a few of the dims gets all its folds there (PointGoal2D's cone of the
+  position: near-goal RMSE 0.006 against 0.032 with the directions uniform in the 4 dims). Each
+  feature is held within the range it had on the data (z per dim, each fold's argument): off the data
+  the reward stays at what it was at the data's edge instead of growing linearly, as a planner would
+  otherwise find (a cone fitted inside the data rose to its top 2 away from the goal).
 
 Every fit is a fixed-size linear solve (or a few L-BFGS steps) in its feature count: the cost is
 linear in the transitions it is given, and the weights are buffers (saved with the module).
@@ -42,7 +50,10 @@ REWARD_PROJECTIONS = 256
 PROJECTION_OFFSET = 2.0
 """The offsets b are uniform in [-PROJECTION_OFFSET, PROJECTION_OFFSET] standard deviations."""
 PROJECTION_SEED = 0
-"""Seed of P and b: fixed, so a refit never moves them and the agent's RNG is not drawn from."""
+"""Seed of the raw directions and b: fixed, so a refit on the same data gives the same P and the agent's RNG is not
+drawn from."""
+METRIC_FLOOR = 1e-6
+"""Each eigenvalue of the metric M is at least this fraction of its largest: no direction maps to zero."""
 
 
 def quadratic(x: torch.Tensor) -> torch.Tensor:
@@ -100,6 +111,11 @@ def change_r2(train: Transitions, holdout: Transitions) -> torch.Tensor:
     return 1 - errors / spread.clamp_min(1e-12)
 
 
+def unbounded_range(dims: int) -> torch.Tensor:
+    """The range (-inf, inf) of ``dims`` features: (2, dims) float64, lower bounds first."""
+    return torch.tensor([[-torch.inf], [torch.inf]], dtype=torch.float64).repeat(1, dims)
+
+
 def transition_rows(data: Transitions, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(s, a, s') of ``rows`` of ``data`` in float64, a as (n, act_dim)."""
     obs = data.obs[rows].double()
@@ -108,7 +124,7 @@ def transition_rows(data: Transitions, rows: torch.Tensor) -> tuple[torch.Tensor
 
 class ObservationModel(nn.Module):
     """s^' = s + W^T [s, a, 1]; P(terminated | s') on quadratic features of s'; the reward of going on
-    on those, a, a^2 and folded random projections, and of ending (module docstring).
+    on those, a, a^2 and folded random projections in the reward's metric, and of ending (module docstring).
 
     :param obs_dim: the observation's dims
     :param act_dim: the Box action's dims
@@ -123,11 +139,14 @@ class ObservationModel(nn.Module):
         self.register_buffer("std", torch.ones(obs_dim, dtype=torch.float64))
         generator = torch.Generator().manual_seed(PROJECTION_SEED)
         directions = torch.randn(obs_dim, REWARD_PROJECTIONS, generator=generator, dtype=torch.float64)
-        self.register_buffer("projections", directions / directions.norm(dim=0, keepdim=True))
+        self.register_buffer("directions", directions / directions.norm(dim=0, keepdim=True), persistent=False)
+        self.register_buffer("projections", self.directions.clone())
         offsets = (2 * torch.rand(REWARD_PROJECTIONS, generator=generator, dtype=torch.float64) - 1) * PROJECTION_OFFSET
         self.register_buffer("offsets", offsets)
         reward_features = state_features + 2 * act_dim + REWARD_PROJECTIONS
         self.register_buffer("reward_weights", torch.zeros(reward_features, dtype=torch.float64))
+        self.register_buffer("z_range", unbounded_range(obs_dim))
+        self.register_buffer("fold_range", unbounded_range(REWARD_PROJECTIONS))
         self.register_buffer("reward_range", torch.tensor([-torch.inf, torch.inf], dtype=torch.float64))
         self.register_buffer("termination", torch.zeros(state_features, dtype=torch.float64))
         self.register_buffer("terminal_reward", torch.zeros((), dtype=torch.float64))
@@ -141,11 +160,36 @@ class ObservationModel(nn.Module):
         self.mean.copy_(next_obs.mean(dim=0))
         self.std.copy_(next_obs.std(dim=0).clamp_min(1e-6))
         rewards = data.rewards.double()
-        features = self.reward_features(next_obs[going_on], actions[going_on])
-        self.reward_weights.copy_(ridge(features, rewards[going_on], REWARD_RIDGE))
+        self.projections.copy_(self.directions)
+        self.fit_reward(next_obs[going_on], actions[going_on], rewards[going_on])
+        if rewards[going_on].max() > rewards[going_on].min():  # a constant reward has no metric
+            self.projections.copy_(self.metric_directions(next_obs[going_on], actions[going_on]))
+            self.fit_reward(next_obs[going_on], actions[going_on], rewards[going_on])
         self.reward_range.copy_(torch.stack([rewards[going_on].min(), rewards[going_on].max()]))
         self.terminal_reward.copy_(rewards[~going_on].mean() if (~going_on).any() else torch.zeros((), dtype=torch.float64))
         self.termination.copy_(logistic(quadratic(self.standardise(next_obs)), data.terminated.double()))
+
+    def fit_reward(self, next_obs: torch.Tensor, actions: torch.Tensor, rewards: torch.Tensor) -> None:
+        """v of the reward of going on by ridge regression on its features with the current P, and the range of
+        z and of each fold's argument there: (N, obs_dim), (N, act_dim), (N,) float64."""
+        z = self.standardise(next_obs)
+        self.z_range.copy_(torch.stack([z.min(dim=0).values, z.max(dim=0).values]))
+        folds = z @ self.projections + self.offsets
+        self.fold_range.copy_(torch.stack([folds.min(dim=0).values, folds.max(dim=0).values]))
+        self.reward_weights.copy_(ridge(self.reward_features(next_obs, actions), rewards, REWARD_RIDGE))
+
+    def metric_directions(self, next_obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """The raw directions w in the metric of the fitted reward, M w / |M w| with M = E[grad_z r grad_z r^T]
+        over the given transitions (the expected gradient outer product), its eigenvalues floored at
+        METRIC_FLOOR of the largest: (N, obs_dim), (N, act_dim) float64 -> (obs_dim, M) unit columns."""
+        with torch.enable_grad():
+            z = self.standardise(next_obs).requires_grad_(True)
+            fitted = self.reward_features(z * self.std + self.mean, actions) @ self.reward_weights
+            (gradients,) = torch.autograd.grad(fitted.sum(), z)
+        values, vectors = torch.linalg.eigh(gradients.T @ gradients / len(z))
+        values = values.clamp_min(METRIC_FLOOR * values.max().clamp_min(torch.finfo(values.dtype).tiny))
+        mapped = vectors @ (values[:, None] * (vectors.T @ self.directions))
+        return mapped / mapped.norm(dim=0, keepdim=True)
 
     def _load_from_state_dict(self, state_dict: dict[str, torch.Tensor], prefix: str, *args: Any, **kwargs: Any) -> None:
         if prefix + "projections" not in state_dict and prefix + "reward_weights" in state_dict:  # saved before them
@@ -154,6 +198,9 @@ class ObservationModel(nn.Module):
             state_dict[prefix + "reward_weights"] = torch.cat([state_dict[prefix + "reward_weights"], padding])
             state_dict[prefix + "reward_range"] = self.reward_range  # and r_end 0 until the next fit
             state_dict[prefix + "terminal_reward"] = self.terminal_reward
+        if prefix + "fold_range" not in state_dict and prefix + "reward_weights" in state_dict:  # saved before the ranges
+            state_dict[prefix + "z_range"] = unbounded_range(self.obs_dim)
+            state_dict[prefix + "fold_range"] = unbounded_range(REWARD_PROJECTIONS)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def standardise(self, next_obs: torch.Tensor) -> torch.Tensor:
@@ -161,9 +208,11 @@ class ObservationModel(nn.Module):
         return (next_obs - self.mean) / self.std
 
     def reward_features(self, next_obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        """[z, z^2, 1, a, a^2, |P^T z + b|]: (N, obs_dim), (N, act_dim) -> (N, 2 obs_dim + 1 + 2 act_dim + M)."""
-        z = self.standardise(next_obs)
-        return torch.cat([quadratic(z), actions, actions.square(), (z @ self.projections + self.offsets).abs()], dim=1)
+        """[z, z^2, 1, a, a^2, |P^T z + b|], z and P^T z + b each within its range on the fit's data:
+        (N, obs_dim), (N, act_dim) -> (N, 2 obs_dim + 1 + 2 act_dim + M)."""
+        z = self.standardise(next_obs).clamp(*self.z_range)
+        folds = (z @ self.projections + self.offsets).clamp(*self.fold_range)
+        return torch.cat([quadratic(z), actions, actions.square(), folds.abs()], dim=1)
 
     def next_obs(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """s^': (N, obs_dim), (N, act_dim) -> (N, obs_dim), float64."""
