@@ -52,6 +52,9 @@ PROJECTION_OFFSET = 2.0
 PROJECTION_SEED = 0
 """Seed of the raw directions and b: fixed, so a refit on the same data gives the same P and the agent's RNG is not
 drawn from."""
+METRIC_ROWS = 2_000
+"""Most transitions the first fit and the metric are computed on (evenly spaced among the fit's): the metric
+needs the reward's shape, not its detail, and the second fit stays the only one on all of them."""
 METRIC_FLOOR = 1e-6
 """Each eigenvalue of the metric M is at least this fraction of its largest: no direction maps to zero."""
 
@@ -160,14 +163,21 @@ class ObservationModel(nn.Module):
         self.mean.copy_(next_obs.mean(dim=0))
         self.std.copy_(next_obs.std(dim=0).clamp_min(1e-6))
         rewards = data.rewards.double()
-        self.projections.copy_(self.directions)
-        self.fit_reward(next_obs[going_on], actions[going_on], rewards[going_on])
-        if rewards[going_on].max() > rewards[going_on].min():  # a constant reward has no metric
-            self.projections.copy_(self.metric_directions(next_obs[going_on], actions[going_on]))
-            self.fit_reward(next_obs[going_on], actions[going_on], rewards[going_on])
-        self.reward_range.copy_(torch.stack([rewards[going_on].min(), rewards[going_on].max()]))
+        self.fit_reward_of_going_on(next_obs[going_on], actions[going_on], rewards[going_on])
         self.terminal_reward.copy_(rewards[~going_on].mean() if (~going_on).any() else torch.zeros((), dtype=torch.float64))
         self.termination.copy_(logistic(quadratic(self.standardise(next_obs)), data.terminated.double()))
+
+    def fit_reward_of_going_on(self, next_obs: torch.Tensor, actions: torch.Tensor, rewards: torch.Tensor) -> None:
+        """P in the reward's metric (from a first fit on at most METRIC_ROWS evenly spaced transitions; a constant
+        reward keeps the raw directions), then v on all the transitions, and the range of their rewards:
+        (N, obs_dim), (N, act_dim), (N,) float64, the non-terminal transitions."""
+        self.projections.copy_(self.directions)
+        if rewards.max() > rewards.min():
+            rows = slice(None, None, -(-len(rewards) // METRIC_ROWS))
+            self.fit_reward(next_obs[rows], actions[rows], rewards[rows])
+            self.projections.copy_(self.metric_directions(next_obs[rows], actions[rows]))
+        self.fit_reward(next_obs, actions, rewards)
+        self.reward_range.copy_(torch.stack([rewards.min(), rewards.max()]))
 
     def fit_reward(self, next_obs: torch.Tensor, actions: torch.Tensor, rewards: torch.Tensor) -> None:
         """v of the reward of going on by ridge regression on its features with the current P, and the range of
