@@ -109,9 +109,9 @@ SMALL = {
     "steps_per_iteration": 100,
     "evaluation": {"collection_size": 300, "rounds": 1},
     "feature_selection": {"subsample_size": 200, "max_features": 20},
-    # the reward fit on psi alone (0 off the data, above this env's early rewards) draws the agent
-    # off the box, which is what these tests need; with the state reward on phi it stays inside
-    "model_update": {"n_steps": 20, "batch_size": 64, "holdout_size": 50},
+    # the CME, whose box this is: its reward fit on psi alone (0 off the data, above this env's early rewards)
+    # draws the agent off the box, which is what these tests need; with the state reward on phi it stays inside
+    "model_update": {"kind": "cme", "n_steps": 20, "batch_size": 64, "holdout_size": 50},
     "exploration": {"random_steps": 100},
 }
 
