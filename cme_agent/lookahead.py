@@ -19,7 +19,6 @@ A known reward (:class:`~cme_agent.rewards.RewardSpec`) replaces the learned one
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
 
 import torch
 from gymnasium import spaces
@@ -30,6 +29,7 @@ from cme_agent.buffer import Transitions
 from cme_agent.dynamics.observation import ObservationModel, change_r2
 from cme_agent.planning import bellman_residual_rms, bellman_residual_weights, smooth
 from cme_agent.rewards import RewardSpec
+from cme_agent.state_features import StateFeatureMap
 
 MAX_LEAVES = 1000
 """Largest K^d of the default lookahead depth (:func:`default_depth`)."""
@@ -47,18 +47,15 @@ phi rows a round. Acting compares all of them."""
 STEP_ROWS = 2**15
 """State-candidate pairs the model steps at once (its float64 features: 32 MiB per 128 of them)."""
 
-FeatureMap = Callable[[torch.Tensor], torch.Tensor]
-"""phi: (N, obs_dim) -> (N, p)."""
-
 
 def default_depth(n_candidates: int) -> int:
     """:data:`DEFAULT_DEPTH` where ``n_candidates ** DEFAULT_DEPTH <= MAX_LEAVES``, else 1 (greedy)."""
     return DEFAULT_DEPTH if n_candidates**DEFAULT_DEPTH <= MAX_LEAVES else 1
 
 
-def blocked_values(phi: FeatureMap, states: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+def blocked_values(phi: StateFeatureMap, states: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
     """<w, phi(s)> at many states, phi built :data:`BLOCK_ROWS` rows at a time: (M, obs_dim) -> (M,)."""
-    return torch.cat([phi(states[start : start + BLOCK_ROWS]) @ weights for start in range(0, len(states), BLOCK_ROWS)])
+    return torch.cat([phi.values(states[start : start + BLOCK_ROWS], weights) for start in range(0, len(states), BLOCK_ROWS)])
 
 
 class LookaheadPlanner(nn.Module):
@@ -145,7 +142,7 @@ class LookaheadPlanner(nn.Module):
     @torch.no_grad()
     def evaluate(
         self,
-        phi: FeatureMap,
+        phi: StateFeatureMap,
         states: torch.Tensor,
         candidates: torch.Tensor,
         l2: float,
@@ -194,14 +191,14 @@ class LookaheadPlanner(nn.Module):
         self.value_weights = torch.zeros_like(self.value_weights)
 
     @torch.no_grad()
-    def greedy(self, phi: FeatureMap, obs: torch.Tensor, candidates: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def greedy(self, phi: StateFeatureMap, obs: torch.Tensor, candidates: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The first action of the best d-step path and its value L_d(s): (N, obs_dim) -> (N, ...) candidates, (N,)."""
         values = self.backed_up(phi, obs, candidates, self.depth - 1)
         best = values.argmax(dim=1)
         return candidates[best], values.gather(1, best.unsqueeze(1)).squeeze(1)
 
     def action_values(
-        self, phi: FeatureMap, obs: torch.Tensor, candidates: torch.Tensor, actions: torch.Tensor
+        self, phi: StateFeatureMap, obs: torch.Tensor, candidates: torch.Tensor, actions: torch.Tensor
     ) -> torch.Tensor:
         """r + gamma g L_{d-1}(s^'_a) of each state's own first action, the candidates after it,
         differentiable in the actions (the continuous search of the first action): (N,).
@@ -214,13 +211,13 @@ class LookaheadPlanner(nn.Module):
         next_obs, going_on, rewards = self.transition(obs, actions)
         return rewards + self.gamma * going_on * self.leaf_values(phi, next_obs, candidates, self.depth - 1)
 
-    def backed_up(self, phi: FeatureMap, obs: torch.Tensor, candidates: torch.Tensor, remaining: int) -> torch.Tensor:
+    def backed_up(self, phi: StateFeatureMap, obs: torch.Tensor, candidates: torch.Tensor, remaining: int) -> torch.Tensor:
         """r + gamma g L_remaining(s^'_a) at every state and candidate: (N, obs_dim) -> (N, K)."""
         next_obs, going_on, rewards = self.step(obs, candidates)
         tail = self.leaf_values(phi, next_obs, candidates, remaining)
         return (rewards + self.gamma * going_on * tail).reshape(len(obs), len(candidates))
 
-    def leaf_values(self, phi: FeatureMap, obs: torch.Tensor, candidates: torch.Tensor, remaining: int) -> torch.Tensor:
+    def leaf_values(self, phi: StateFeatureMap, obs: torch.Tensor, candidates: torch.Tensor, remaining: int) -> torch.Tensor:
         """L_remaining(s): <w, phi(s)> at 0, else the best of :meth:`backed_up`: (M, obs_dim) -> (M,)."""
         if remaining == 0:
             return blocked_values(phi, obs, self.value_weights)

@@ -67,6 +67,10 @@ class StateFeatureMap(nn.Module):
         whatever was learned on the old phi. :return: a line for the log."""
         raise NotImplementedError(f"{type(self).__name__} has no coordinates to fit")
 
+    def values(self, obs: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+        """<w, phi(s)>: (N, obs_dim), (p,) -> (N,)."""
+        return self(obs) @ weights
+
     def successor_targets(
         self, next_obs: torch.Tensor, continuation: torch.Tensor, obs: torch.Tensor | None = None
     ) -> torch.Tensor:
@@ -260,9 +264,18 @@ class RandomFourierFeatures(StateFeatureMap):
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         """:param obs: (N, obs_dim) observations. :return: (N, p) features."""
-        z = (obs - self.mean) * self.inv_std if self.follows_data else self.encoder.normalize(obs)
-        features = math.sqrt(2 / self.phase.numel()) * torch.cos(z @ self.projection + self.phase)
+        features = math.sqrt(2 / self.phase.numel()) * self.cosines(obs)
         return torch.cat([features, torch.ones_like(features[:, :1])], dim=1)
+
+    def values(self, obs: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+        """<w, phi(s)> without building phi's constant column or its scaled copy: (N, obs_dim), (p,) -> (N,)."""
+        return self.cosines(obs) @ weights[:-1] * math.sqrt(2 / self.phase.numel()) + weights[-1]
+
+    def cosines(self, obs: torch.Tensor) -> torch.Tensor:
+        """cos(W z + b): (N, obs_dim) -> (N, D), in place where no gradient is taken."""
+        z = (obs - self.mean) * self.inv_std if self.follows_data else self.encoder.normalize(obs)
+        angles = (z @ self.projection).add_(self.phase)
+        return angles.cos() if angles.requires_grad else angles.cos_()
 
 
 class CustomStateFeatures(StateFeatureMap):

@@ -16,6 +16,7 @@ from cme_agent.buffer import Transitions
 from cme_agent.lookahead import LookaheadPlanner, default_depth
 from cme_agent.pictures import PICTURE_TAGS, agent_pictures, holdout_errors
 from cme_agent.rewards import RewardSpec
+from cme_agent.state_features import StateFeatureMap
 from tests.test_defaults_contract import SMALL_BUDGETS
 from tests.test_six_dim_actions import PointMassSixActuators
 
@@ -35,8 +36,16 @@ def planner(depth: int, reward: RewardSpec, width: int = 1) -> LookaheadPlanner:
     return lookahead
 
 
-def ones(obs: torch.Tensor) -> torch.Tensor:
-    return torch.ones(len(obs), 1)
+class Ones(StateFeatureMap):
+    """phi = 1: V is the constant w."""
+
+    width = 1
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return torch.ones(len(obs), 1)
+
+
+ones = Ones()
 
 
 def test_the_default_depth_is_three_where_its_leaves_are_few() -> None:

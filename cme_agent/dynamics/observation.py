@@ -217,12 +217,19 @@ class ObservationModel(nn.Module):
         """z = (s' - mean) / std: (N, obs_dim) -> (N, obs_dim)."""
         return (next_obs - self.mean) / self.std
 
-    def reward_features(self, next_obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        """[z, z^2, 1, a, a^2, |P^T z + b|], z and P^T z + b each within its range on the fit's data:
-        (N, obs_dim), (N, act_dim) -> (N, 2 obs_dim + 1 + 2 act_dim + M)."""
+    def reward_parts(self, next_obs: torch.Tensor, actions: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """The blocks of :meth:`reward_features`: [z, z^2, 1] (N, 2 obs_dim + 1), a and a^2 (N, act_dim) each, and
+        |P^T z + b| (N, M), z and P^T z + b each within its range on the fit's data."""
         z = self.standardise(next_obs).clamp(*self.z_range)
-        folds = (z @ self.projections + self.offsets).clamp(*self.fold_range)
-        return torch.cat([quadratic(z), actions, actions.square(), folds.abs()], dim=1)
+        folds = affine(z, z[:, :0]) @ torch.cat([self.projections, self.offsets[None]])  # one pass over (N, M)
+        if folds.requires_grad:
+            return quadratic(z), actions, actions.square(), folds.clamp(*self.fold_range).abs()
+        return quadratic(z), actions, actions.square(), folds.clamp_(*self.fold_range).abs_()
+
+    def reward_features(self, next_obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """[z, z^2, 1, a, a^2, |P^T z + b|] (:meth:`reward_parts`): (N, obs_dim), (N, act_dim) ->
+        (N, 2 obs_dim + 1 + 2 act_dim + M)."""
+        return torch.cat(self.reward_parts(next_obs, actions), dim=1)
 
     def next_obs(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """s^': (N, obs_dim), (N, act_dim) -> (N, obs_dim), float64."""
@@ -237,7 +244,9 @@ class ObservationModel(nn.Module):
         """r(s', a) of going on, within the range of the rewards it was fitted on (the projections grow linearly off the
         data, and a planner heads for any state it over-rates and shuns any it under-rates): (N, obs_dim),
         (N, act_dim) -> (N,), float64."""
-        fitted = self.reward_features(next_obs.double(), actions.double()) @ self.reward_weights
+        parts = self.reward_parts(next_obs.double(), actions.double())
+        weights = self.reward_weights.split([part.shape[1] for part in parts])
+        fitted = sum(part @ weight for part, weight in zip(parts, weights, strict=True))  # the features never stacked
         return fitted.clamp(*self.reward_range)
 
     def transition(self, obs: torch.Tensor, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
