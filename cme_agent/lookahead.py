@@ -80,6 +80,11 @@ class LookaheadPlanner(nn.Module):
         self.register_buffer("value_weights", torch.zeros(width))
         self.depth, self.gamma, self.reward_spec = depth, gamma, reward
 
+    @property
+    def reward_varies(self) -> bool:
+        """Whether the reward planning sees varies: the env's known reward, or a learned one fitted on unequal rewards."""
+        return self.reward_spec is not None or bool(self.model.reward_range[1] > self.model.reward_range[0])
+
     def model_actions(self, actions: torch.Tensor) -> torch.Tensor:
         """Actions as the model reads them: Box (N, act_dim) as they are, Discrete (N,) one-hot (N, n), float64."""
         if self.n_actions is None:

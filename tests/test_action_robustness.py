@@ -50,7 +50,7 @@ def test_the_refined_rule_raises_q_and_restores_the_agents_search(agent: CMEPoli
     obs = torch.as_tensor(states)
     greedy_actions = torch.as_tensor(np.stack([ar.ActingRule(agent)(s) for s in states]))
     refined_actions = torch.as_tensor(np.stack([refined(s) for s in states]))
-    assert agent.policy.action_search is trained and trained.refine_steps == 0
+    assert agent.policy.action_search is trained and agent.policy.refine_steps == 0
     with torch.no_grad():
         q_greedy, q_refined = agent.policy.q_values(obs, greedy_actions), agent.policy.q_values(obs, refined_actions)
     assert bool((q_refined >= q_greedy - 1e-5).all())

@@ -13,6 +13,7 @@ from stable_baselines3.common.logger import Logger
 
 from cme_agent import CMEPolicy, CMEPolicyIteration
 from cme_agent.buffer import Transitions
+from cme_agent.config import LOOKAHEAD_REFINE_STEPS
 from cme_agent.lookahead import LookaheadPlanner, default_depth
 from cme_agent.pictures import PICTURE_TAGS, agent_pictures, holdout_errors
 from cme_agent.rewards import RewardSpec
@@ -99,13 +100,27 @@ def test_the_agent_plans_through_the_observation_model_with_discrete_actions_and
     np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
 
 
-@pytest.mark.parametrize("refine_steps", [0, 5])
-def test_six_dim_actions_act_greedily_through_the_observation_model_and_survive_save_load(tmp_path, refine_steps: int) -> None:
+def test_by_default_the_lookahead_refines_its_first_action_where_the_reward_varies_and_the_cme_does_not() -> None:
+    plain = {"preset": False, "verbose": 0}
+    cme = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=0, model_update={"kind": "cme"}, **plain).policy
+    observation = CMEPolicyIteration("CMEPolicy", "PointGoal2D-v0", seed=0, model_update={"kind": "observation"}, **plain)
+    observation = observation.policy  # its reward is learned
+    assert (cme.refine_steps, cme.refines) == (0, False)
+    assert (observation.refine_steps, observation.refines) == (LOOKAHEAD_REFINE_STEPS, True)
+    observation.lookahead.model.reward_range.fill_(1.0)  # a constant learned reward, as InvertedPendulum's
+    assert (observation.refine_steps, observation.refines) == (0, False)
+
+
+@pytest.mark.parametrize("refine_steps", [None, 0, 5])
+def test_six_dim_actions_act_greedily_through_the_observation_model_and_survive_save_load(
+    tmp_path, refine_steps: int | None
+) -> None:
     kwargs = {
         **SMALL_BUDGETS,
         "model_update": {**SMALL_BUDGETS.get("model_update", {}), "kind": "observation"},
         "policy_kwargs": {"action_search": {"refine_steps": refine_steps}},
     }
+    refines = refine_steps != 0  # None: the lookahead's default, LOOKAHEAD_REFINE_STEPS
     model = CMEPolicyIteration("CMEPolicy", PointMassSixActuators(), seed=0, **kwargs).learn(400)
     policy = model.policy
     assert policy.lookahead.depth == 1  # 257 candidates: 257^3 leaves is too many
@@ -114,10 +129,10 @@ def test_six_dim_actions_act_greedily_through_the_observation_model_and_survive_
     space = model.action_space
     assert actions.shape == (16, 6) and (actions >= space.low).all() and (actions <= space.high).all()
     candidates = {tuple(row) for row in policy.candidates.numpy().round(6)}
-    assert any(tuple(row) not in candidates for row in actions.round(6)) == (refine_steps > 0)
+    assert any(tuple(row) not in candidates for row in actions.round(6)) == refines
     _, values = policy.greedy(torch.as_tensor(obs))
     best_candidate = policy.lookahead.greedy(policy.dynamics.phi, torch.as_tensor(obs), policy.candidates)[1]
-    assert bool((values >= best_candidate).all()) and bool((values > best_candidate).any()) == (refine_steps > 0)
+    assert bool((values >= best_candidate).all()) and bool((values > best_candidate).any()) == refines
     model.save(tmp_path / "six.zip")
     np.testing.assert_array_equal(CMEPolicyIteration.load(tmp_path / "six.zip").predict(obs, deterministic=True)[0], actions)
 
