@@ -126,6 +126,15 @@ def steps(workers: int) -> list[Step]:
             ("unseen_envs_auto",),
         ),
         Step(
+            "unseen_envs_waves",
+            (  # the envs where "auto" gives the model of the observation waves of (s, a): its linear change falls short
+                "python -m benchmarks.unseen_envs --agents cme --envs InvertedDoublePendulum-v5 Reacher-v5 "
+                f"--seeds 0 1 2 --stem unseen_envs_waves {jobs}",
+            ),
+            ("unseen_envs_waves.md", "unseen_envs_waves.csv", "unseen_envs_waves.png"),
+            ("unseen_envs_waves",),
+        ),
+        Step(
             "unseen_envs_observation",
             (  # HalfCheetah and Hopper (about 15 minutes a run) on seed 0 only
                 f"python -m benchmarks.unseen_envs --agents cme --kwargs {observation} --stem unseen_envs_observation "

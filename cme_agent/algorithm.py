@@ -194,6 +194,7 @@ class CMEPolicyIteration(PersistenceMixin, BaseAlgorithm):
             improvement=self.improvement_config,
             model_kind=self.model_update_config.kind,
             gamma=self.gamma,
+            change_fourier=self.model_update_config.change_fourier,
             **self.policy_kwargs,
         ).to(self.device)
         action_shape = () if isinstance(self.action_space, spaces.Discrete) else self.action_space.shape

@@ -191,6 +191,9 @@ class ModelUpdateConfig:
         s' - s reaches a held-out R^2 of ``auto_r2`` on every dim, else ``"cme"`` (and ``"cme"``
         with the soft improvement, which is the CME's)
     :param auto_r2: the held-out R^2 in (0, 1] that ``kind="auto"`` asks of every dim
+    :param change_fourier: random Fourier features ("waves") of the standardised (s, a) beside [s, a, 1] in the model
+        of the observation's change (0: linear); None: ``kind="auto"`` chooses 0 where the linear model reaches
+        ``auto_r2`` and :data:`~cme_agent.dynamics.observation.CHANGE_FOURIER` elsewhere (``kind="observation"``: 0)
     """
 
     method: str = "ridge"
@@ -204,12 +207,20 @@ class ModelUpdateConfig:
     feature_dynamics: bool = True
     kind: str = "auto"
     auto_r2: float = 0.99
+    change_fourier: int | None = None
 
     def __post_init__(self) -> None:
         check_choice("model_update.method", self.method, MODEL_UPDATE_METHODS)
         check_choice("model_update.kind", self.kind, MODEL_KINDS)
         check_unit_interval("model_update.auto_r2", self.auto_r2, open_low=True)
         check_positive_int("model_update.refit_size", self.refit_size)
+        waves = self.change_fourier
+        check(
+            "model_update.change_fourier",
+            waves,
+            waves is None or (isinstance(waves, int) and not isinstance(waves, bool) and waves >= 0),
+            "an integer >= 0, or null (chosen with kind='auto')",
+        )
         if self.l2 is None:  # frozen: the method's ridge is written in once, so the config says what ran
             object.__setattr__(self, "l2", MODEL_UPDATE_L2[self.method])
         check_positive_int("model_update.n_steps", self.n_steps)

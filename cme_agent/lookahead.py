@@ -67,16 +67,24 @@ class LookaheadPlanner(nn.Module):
     :param depth: d >= 1, env steps acting looks ahead
     :param gamma: discount factor of planning and acting
     :param reward: the known reward (None: the model's learned reward and termination)
+    :param change_fourier: the waves of the model's change (0: linear)
     """
 
     def __init__(
-        self, obs_dim: int, action_space: spaces.Space, width: int, depth: int, gamma: float, reward: RewardSpec | None
+        self,
+        obs_dim: int,
+        action_space: spaces.Space,
+        width: int,
+        depth: int,
+        gamma: float,
+        reward: RewardSpec | None,
+        change_fourier: int = 0,
     ) -> None:
         super().__init__()
         if depth < 1:
             raise ValueError(f"lookahead depth={depth} is invalid: must be >= 1")
         self.n_actions = int(action_space.n) if isinstance(action_space, spaces.Discrete) else None
-        self.model = ObservationModel(obs_dim, self.n_actions or int(action_space.shape[0]))
+        self.model = ObservationModel(obs_dim, self.n_actions or int(action_space.shape[0]), change_fourier)
         self.register_buffer("value_weights", torch.zeros(width))
         self.depth, self.gamma, self.reward_spec = depth, gamma, reward
 
