@@ -64,6 +64,7 @@ def steps(workers: int) -> list[Step]:
     ten_seeds = " ".join(str(seed) for seed in range(10))
     figures = tuple(f"{stem}.{ext}" for stem in ("figure1", "figure2", "figure3") for ext in ("md", "csv", "png"))
     observation = shlex.quote('{"model_update": {"kind": "observation"}}')
+    waves = shlex.quote('{"model_update": {"kind": "observation", "change_fourier": 500}}')
     return [
         Step("threads", ("python -m benchmarks.threads",), ("threads.md",)),
         Step("defaults_memory", ("python -m benchmarks.defaults_memory --repeats 3",), ("defaults_memory.md",)),
@@ -127,9 +128,9 @@ def steps(workers: int) -> list[Step]:
         ),
         Step(
             "unseen_envs_waves",
-            (  # the envs where "auto" gives the model of the observation waves of (s, a): its linear change falls short
+            (  # the model of the observation with waves of (s, a) where its linear change falls short (an option)
                 "python -m benchmarks.unseen_envs --agents cme --envs InvertedDoublePendulum-v5 Reacher-v5 "
-                f"--seeds 0 1 2 --stem unseen_envs_waves {jobs}",
+                f"--kwargs {waves} --seeds 0 1 2 --stem unseen_envs_waves {jobs}",
             ),
             ("unseen_envs_waves.md", "unseen_envs_waves.csv", "unseen_envs_waves.png"),
             ("unseen_envs_waves",),

@@ -192,8 +192,8 @@ class ModelUpdateConfig:
         with the soft improvement, which is the CME's)
     :param auto_r2: the held-out R^2 in (0, 1] that ``kind="auto"`` asks of every dim
     :param change_fourier: random Fourier features ("waves") of the standardised (s, a) beside [s, a, 1] in the model
-        of the observation's change (0: linear); None: ``kind="auto"`` chooses 0 where the linear model reaches
-        ``auto_r2`` and :data:`~cme_agent.dynamics.observation.CHANGE_FOURIER` elsewhere (``kind="observation"``: 0)
+        of the observation's change (0: linear; 500 took Reacher-v5 from -11.6 to -6.0 at 5,000 steps, and
+        InvertedDoublePendulum-v5 below the CME, with ``kind="observation"``)
     """
 
     method: str = "ridge"
@@ -207,7 +207,7 @@ class ModelUpdateConfig:
     feature_dynamics: bool = True
     kind: str = "auto"
     auto_r2: float = 0.99
-    change_fourier: int | None = None
+    change_fourier: int = 0
 
     def __post_init__(self) -> None:
         check_choice("model_update.method", self.method, MODEL_UPDATE_METHODS)
@@ -218,8 +218,8 @@ class ModelUpdateConfig:
         check(
             "model_update.change_fourier",
             waves,
-            waves is None or (isinstance(waves, int) and not isinstance(waves, bool) and waves >= 0),
-            "an integer >= 0, or null (chosen with kind='auto')",
+            isinstance(waves, int) and not isinstance(waves, bool) and waves >= 0,
+            "an integer >= 0",
         )
         if self.l2 is None:  # frozen: the method's ridge is written in once, so the config says what ran
             object.__setattr__(self, "l2", MODEL_UPDATE_L2[self.method])

@@ -122,7 +122,6 @@ class CMEPolicy(BasePolicy):
         weights; ``"auto"`` holds the planner until :meth:`choose_model`
     :param gamma: the discount factor the lookahead acts with (``model_kind="observation"``)
     :param change_fourier: ``model_update.change_fourier``, the waves of the model of the observation's change
-        (None: 0 until :meth:`choose_model`)
     """
 
     def __init__(
@@ -141,7 +140,7 @@ class CMEPolicy(BasePolicy):
         action_scale: float = 1.0,
         model_kind: str = "cme",
         gamma: float = 0.95,
-        change_fourier: int | None = 0,
+        change_fourier: int = 0,
     ) -> None:
         super().__init__(observation_space, action_space, squash_output=False)
         self.phi_spec = phi
@@ -199,22 +198,14 @@ class CMEPolicy(BasePolicy):
                 f"action_search.lookahead_depth={depth} is invalid with {n_candidates} candidate actions: "
                 f"{n_candidates}^{depth} leaves per action, more than {LEAF_LIMIT:,}; pass a smaller depth"
             )
-        return self._planner(depth, reward, self.change_fourier or 0)
+        obs_dim, waves = self.observation_space.shape[0], self.change_fourier
+        return LookaheadPlanner(obs_dim, self.action_space, self.dynamics.p, depth, self.gamma, reward, waves)
 
-    def _planner(self, depth: int, reward: RewardSpec | None, change_fourier: int) -> LookaheadPlanner:
-        """A fresh :class:`LookaheadPlanner` of this policy's spaces, phi and gamma."""
-        obs_dim = self.observation_space.shape[0]
-        return LookaheadPlanner(obs_dim, self.action_space, self.dynamics.p, depth, self.gamma, reward, change_fourier)
-
-    def choose_model(self, kind: str, change_fourier: int) -> None:
-        """Settle ``model_kind="auto"``: keep the lookahead with ``"observation"``, its model's change with
-        ``change_fourier`` waves, or drop it with ``"cme"``."""
-        self.model_kind, self.change_fourier = kind, change_fourier
+    def choose_model(self, kind: str) -> None:
+        """Settle ``model_kind="auto"``: keep the lookahead with ``"observation"``, drop it with ``"cme"``."""
+        self.model_kind = kind
         if kind == "cme":
             self.lookahead = None
-        elif change_fourier != self.lookahead.model.change_features.phase.numel():
-            device = self.lookahead.value_weights.device
-            self.lookahead = self._planner(self.lookahead.depth, self.lookahead.reward_spec, change_fourier).to(device)
 
     def _make_candidates(self) -> torch.Tensor:
         """Candidate actions in env units: all Discrete actions (K,), or a Box grid / sample (K, act_dim)."""

@@ -83,9 +83,7 @@ def test_the_agent_sets_it_from_its_first_batch_says_so_and_it_survives_save_loa
     from gymnasium.envs.classic_control import PendulumEnv
 
     env = gym.wrappers.TimeLimit(PendulumEnv(), 200)  # no id: the reward is learned, every reward <= 0
-    agent = CMEPolicyIteration(  # the CME's reward offset ("auto" would give this env the model of the observation)
-        "CMEPolicy", env, seed=0, steps_per_iteration=100, verbose=1, model_update={"kind": "cme"}
-    )
+    agent = CMEPolicyIteration("CMEPolicy", env, seed=0, steps_per_iteration=100, verbose=1)
     assert agent.reward_source == "learned"
     agent.learn(300)
     offset = float(agent.dynamics.reward_offset)

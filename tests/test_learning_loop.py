@@ -55,8 +55,7 @@ def test_unknown_reward_is_learned_and_said(capsys, pendulum_kwargs):
     from gymnasium.envs.classic_control import PendulumEnv
 
     env = gym.wrappers.TimeLimit(PendulumEnv(), 200)  # made without gym.make: no id, no known reward
-    kwargs = {**pendulum_kwargs, "model_update": {**pendulum_kwargs["model_update"], "kind": "cme"}}  # psi's reward
-    model = CMEPolicyIteration("CMEPolicy", env, seed=0, verbose=1, **kwargs)
+    model = CMEPolicyIteration("CMEPolicy", env, seed=0, verbose=1, **pendulum_kwargs)
     assert model.reward_source == "learned" and model.dynamics.learn_reward
     model.learn(300)
     assert "reward is learned" in capsys.readouterr().out

@@ -1,5 +1,4 @@
-"""model_update.kind="auto": the model of the observation, linear where s' - s is linear in (s, a), else with waves of
-(s, a); the CME with the soft improvement or too few held-out transitions."""
+"""model_update.kind="auto": the model of the observation where s' - s is linear in (s, a), else the CME."""
 
 from __future__ import annotations
 
@@ -11,11 +10,13 @@ import torch
 from cme_agent import CMEPolicyIteration
 from cme_agent.buffer import Transitions
 from cme_agent.config import ModelUpdateConfig
-from cme_agent.dynamics.observation import CHANGE_FOURIER, ObservationModel, change_r2
+from cme_agent.dynamics.observation import ObservationModel, change_r2
 from cme_agent.kernel_baseline import KernelPolicyIteration
 from cme_agent.presets import preset_files
 
 PLAIN = {"preset": False, "verbose": 0}
+WAVES = 500
+"""model_update.change_fourier of the tests with waves."""
 
 
 def synthetic(n: int, seed: int, smooth: bool = False) -> Transitions:
@@ -43,17 +44,17 @@ def test_the_held_out_r2_is_one_where_the_change_is_linear_and_low_where_it_is_n
 
 def test_waves_of_s_and_a_explain_a_smooth_nonlinear_change_the_linear_model_misses() -> None:
     train, held_out = synthetic(400, seed=0, smooth=True), synthetic(500, seed=1, smooth=True)
-    linear, waves = change_r2(train, held_out), change_r2(train, held_out, CHANGE_FOURIER)
+    linear, waves = change_r2(train, held_out), change_r2(train, held_out, WAVES)
     assert float(linear[2]) < 0.1 and float(waves[2]) > 0.99
     assert bool((waves[[0, 1, 3]] > 0.999).all())  # the linear part stays exact
 
 
 def test_the_waves_survive_save_load_and_a_file_saved_before_them_loads_linear(tmp_path) -> None:
-    model = ObservationModel(4, 1, CHANGE_FOURIER)
+    model = ObservationModel(4, 1, WAVES)
     data = synthetic(400, seed=0, smooth=True)
     model.fit(data)
     torch.save(model.state_dict(), tmp_path / "model.pt")
-    loaded = ObservationModel(4, 1, CHANGE_FOURIER)
+    loaded = ObservationModel(4, 1, WAVES)
     loaded.load_state_dict(torch.load(tmp_path / "model.pt"))
     torch.testing.assert_close(loaded.next_obs(data.obs, data.actions), model.next_obs(data.obs, data.actions))
     linear = ObservationModel(4, 1)
@@ -64,31 +65,34 @@ def test_the_waves_survive_save_load_and_a_file_saved_before_them_loads_linear(t
     torch.testing.assert_close(fresh.next_obs(data.obs, data.actions), linear.next_obs(data.obs, data.actions))
 
 
-def waves_of(model: CMEPolicyIteration) -> int:
-    return model.policy.lookahead.model.change_features.phase.numel()
+def test_an_agent_with_waves_learns_acts_and_survives_save_load(tmp_path) -> None:
+    waves = {"kind": "observation", "change_fourier": WAVES}
+    model = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=0, model_update=waves, **PLAIN).learn(400)
+    assert model.policy.lookahead.model.change_features.phase.numel() == WAVES
+    model.save(tmp_path / "waves.zip")
+    loaded = CMEPolicyIteration.load(tmp_path / "waves.zip")
+    assert loaded.model_update_config.change_fourier == WAVES
+    obs = model.store.get(slice(0, 50)).obs.numpy()
+    np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
 
 
-def test_auto_chooses_a_linear_model_on_cartpole_and_waves_on_pendulum(capsys) -> None:
+def test_auto_chooses_the_observation_model_on_cartpole_and_the_cme_on_pendulum(capsys) -> None:
     cartpole = CMEPolicyIteration("CMEPolicy", "CartPole-v1", seed=0, **{**PLAIN, "verbose": 1}).learn(500)
     said = capsys.readouterr().out
     assert "model_update.kind='auto' chose the model of the observation" in said and "R^2 of 1.000" in said
     assert cartpole.model_update_config.kind == cartpole.policy.model_kind == "observation"
     assert cartpole.policy.lookahead is not None and cartpole.q == 0
-    assert cartpole.model_update_config.change_fourier == waves_of(cartpole) == 0
-    pendulum = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=0, **{**PLAIN, "verbose": 1}).learn(400)
-    assert f"{CHANGE_FOURIER} waves of (s, a)" in capsys.readouterr().out
-    assert pendulum.model_update_config.kind == pendulum.policy.model_kind == "observation"
-    assert pendulum.model_update_config.change_fourier == waves_of(pendulum) == CHANGE_FOURIER
+    pendulum = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=0, **PLAIN).learn(400)
+    assert pendulum.model_update_config.kind == pendulum.policy.model_kind == "cme"
+    assert pendulum.policy.lookahead is None and pendulum.q > 0
+    assert not any(key.startswith("lookahead.") for key in pendulum.policy.state_dict())
 
 
-@pytest.mark.parametrize(
-    ("env_id", "chosen", "steps"),
-    [("CartPole-v1", {"kind": "observation"}, 600), ("Pendulum-v1", {"kind": "observation", "change_fourier": 500}, 400)],
-)
-def test_auto_makes_the_run_the_chosen_kind_makes_from_the_start(env_id: str, chosen: dict, steps: int) -> None:
+@pytest.mark.parametrize(("env_id", "kind", "steps"), [("CartPole-v1", "observation", 600), ("Pendulum-v1", "cme", 400)])
+def test_auto_makes_the_run_the_chosen_kind_makes_from_the_start(env_id: str, kind: str, steps: int) -> None:
     auto = CMEPolicyIteration("CMEPolicy", env_id, seed=3, **PLAIN).learn(steps)
-    fixed = CMEPolicyIteration("CMEPolicy", env_id, seed=3, model_update=chosen, **PLAIN).learn(steps)
-    assert auto.policy.model_kind == chosen["kind"]
+    fixed = CMEPolicyIteration("CMEPolicy", env_id, seed=3, model_update={"kind": kind}, **PLAIN).learn(steps)
+    assert auto.policy.model_kind == kind
     auto_state, fixed_state = state_of(auto), state_of(fixed)
     assert auto_state.keys() == fixed_state.keys()
     for key, value in auto_state.items():
@@ -107,12 +111,7 @@ def test_the_choice_survives_save_load_and_an_unchosen_agent_chooses_after_loadi
     fresh.save(tmp_path / "fresh.zip")
     reloaded = CMEPolicyIteration.load(tmp_path / "fresh.zip", env=gym.make("Pendulum-v1"))
     assert reloaded.policy.model_kind == "auto" and reloaded.policy.lookahead is not None
-    assert reloaded.learn(400).policy.model_kind == "observation" and waves_of(reloaded) == CHANGE_FOURIER
-    reloaded.save(tmp_path / "waves.zip")
-    with_waves = CMEPolicyIteration.load(tmp_path / "waves.zip")
-    assert waves_of(with_waves) == CHANGE_FOURIER
-    obs = reloaded.store.get(slice(0, 50)).obs.numpy()
-    np.testing.assert_array_equal(with_waves.predict(obs, deterministic=True)[0], reloaded.predict(obs, deterministic=True)[0])
+    assert reloaded.learn(400).policy.model_kind == "cme" and reloaded.policy.lookahead is None
 
 
 def test_the_presets_keep_the_cme_they_were_measured_with() -> None:
@@ -146,7 +145,7 @@ def test_the_threshold_is_checked_and_the_kernel_baseline_stays_a_cme() -> None:
     for bad in (-1, 1.5, True, "many"):
         with pytest.raises(ValueError, match=r"model_update\.change_fourier"):
             ModelUpdateConfig(change_fourier=bad)
-    assert ModelUpdateConfig().kind == "auto" and ModelUpdateConfig().change_fourier is None
+    assert ModelUpdateConfig().kind == "auto" and ModelUpdateConfig().change_fourier == 0
     with pytest.raises(ValueError, match="invalid for the Kernel baseline"):
         KernelPolicyIteration("CMEPolicy", "CartPole-v1", model_update={"kind": "observation"}, **PLAIN)
     kernel = KernelPolicyIteration("CMEPolicy", "CartPole-v1", **PLAIN)

@@ -28,7 +28,6 @@ class PointMassSixActuators(PointMass3D):
 def test_six_dim_actions_search_continuously_with_the_data_metric_and_survive_save_load(tmp_path) -> None:
     kwargs = {
         **SMALL_BUDGETS,
-        "model_update": {**SMALL_BUDGETS["model_update"], "kind": "cme"},  # the CME's search (test_lookahead: the other)
         "policy_kwargs": {
             "phi": {"kind": "fourier", "metric": "data", "max_width": 100},
             "action_search": {"refine_steps": 5},

@@ -56,8 +56,6 @@ drawn from."""
 METRIC_ROWS = 2_000
 """Most transitions the first fit and the metric are computed on (evenly spaced among the fit's): the metric
 needs the reward's shape, not its detail, and the second fit stays the only one on all of them."""
-CHANGE_FOURIER = 500
-"""The waves of the change model where the linear one falls short (``model_update.change_fourier=None``)."""
 CHANGE_LENGTH_SCALE = 2.0
 """The length scale of the change model's waves, in standard deviations times sqrt(d): Reacher-v5's change from
 random actions, held-out R^2 0.98-1.0 on its joint and fingertip dims (500 waves; linear: below 0.05)."""

@@ -13,7 +13,6 @@ from stable_baselines3.common.logger import Logger
 from cme_agent.buffer import Transitions, TransitionStore
 from cme_agent.config import ModelUpdateConfig
 from cme_agent.dynamics.cme import CMEDynamics
-from cme_agent.dynamics.observation import CHANGE_FOURIER
 
 if TYPE_CHECKING:
     from cme_agent.lookahead import LookaheadPlanner
@@ -53,37 +52,33 @@ class ModelTrainer:
     def choose_kind(
         self, policy: CMEPolicy, store: TransitionStore, holdout: TransitionStore, logger: Logger
     ) -> ModelUpdateConfig:
-        """``kind="auto"``: the model of the observation, linear where the linear model of s' - s fitted on the
-        first ``refit_size`` transitions of D reaches a held-out R^2 of ``auto_r2`` on every dim
-        (:meth:`LookaheadPlanner.change_r2` on the first ``holdout_size`` held-out ones), else with
-        :data:`~cme_agent.dynamics.observation.CHANGE_FOURIER` waves of (s, a) (``change_fourier=None``; a given
-        count is kept); the CME where too few transitions were held out to measure. The policy is told
-        (:meth:`CMEPolicy.choose_model`) and the choice said. It draws nothing from the agent's RNG, so a run is the
-        one that kind would have made from the start.
+        """``kind="auto"``: ``"observation"`` where the linear model of s' - s fitted on the first
+        ``refit_size`` transitions of D reaches a held-out R^2 of ``auto_r2`` on every dim
+        (:meth:`LookaheadPlanner.change_r2` on the first ``holdout_size`` held-out ones), else
+        ``"cme"``; the policy is told (:meth:`CMEPolicy.choose_model`) and the choice said. It draws
+        nothing from the agent's RNG, so a run is the one that kind would have made from the start.
 
         :param policy: the agent's policy, whose ``model_kind`` is ``"auto"``
         :param store: D
         :param holdout: the held-out transitions
         :param logger: SB3's logger
-        :return: the settings with the chosen kind and waves
+        :return: the settings with the chosen kind
         """
         held_out = holdout.get(slice(0, min(len(holdout), self.config.holdout_size)))
-        waves = self.config.change_fourier
         if int((~held_out.terminated).sum()) < MIN_HELD_OUT:
-            kind, waves, reason = "cme", 0, f"fewer than {MIN_HELD_OUT} held-out transitions to measure a model on"
+            kind, reason = "cme", f"fewer than {MIN_HELD_OUT} held-out transitions to measure a linear model on"
         else:
             r2 = policy.lookahead.change_r2(store.get(slice(0, min(len(store), self.config.refit_size))), held_out)
             worst = int(r2.argmin())
-            linear = float(r2[worst]) >= self.config.auto_r2
-            kind, waves = "observation", (0 if linear else CHANGE_FOURIER) if waves is None else waves
+            kind = "observation" if float(r2[worst]) >= self.config.auto_r2 else "cme"
             reason = (
                 f"a linear model of s' - s explains a held-out R^2 of {float(r2[worst]):.3f} of observation dim "
-                f"{worst}, its worst ({self.config.auto_r2} on every dim keeps it linear); {waves} waves of (s, a)"
+                f"{worst}, its worst (the model of the observation needs {self.config.auto_r2} on every dim)"
             )
-        policy.choose_model(kind, waves)
+        policy.choose_model(kind)
         said = "the model of the observation (acting looks ahead)" if kind == "observation" else "the CME"
         logger.info(f"model_update.kind='auto' chose {said}: {reason}")
-        self.config = dataclasses.replace(self.config, kind=kind, change_fourier=waves)
+        self.config = dataclasses.replace(self.config, kind=kind)
         return self.config
 
     def fit_observation_model(
