@@ -154,3 +154,10 @@ def transposed_product(matrix: torch.Tensor, other: torch.Tensor, rows: int = 12
     for start in range(0, matrix.shape[0], rows):
         accumulate(matrix[start : start + rows].T.double(), other[start : start + rows].double())
     return out
+
+
+def random_cosines(inputs: torch.Tensor, projection: torch.Tensor, phase: torch.Tensor) -> torch.Tensor:
+    """cos(x W + b), the random Fourier features' waves, in place where no gradient is taken: (N, d), (d, D), (D,) ->
+    (N, D)."""
+    angles = (inputs @ projection).add_(phase)
+    return angles.cos() if angles.requires_grad else angles.cos_()

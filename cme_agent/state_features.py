@@ -25,7 +25,7 @@ from torch import nn
 
 from cme_agent.config import EvaluationConfig, StateFeatureConfig, collection_size_for
 from cme_agent.encoding import ObservationEncoder
-from cme_agent.linalg import GRAM_BLOCK, gram_blocks
+from cme_agent.linalg import GRAM_BLOCK, gram_blocks, random_cosines
 from cme_agent.planning import evaluation_memory_bytes
 
 DEFAULT_GRID_RESOLUTION = 11
@@ -274,8 +274,7 @@ class RandomFourierFeatures(StateFeatureMap):
     def cosines(self, obs: torch.Tensor) -> torch.Tensor:
         """cos(W z + b): (N, obs_dim) -> (N, D), in place where no gradient is taken."""
         z = (obs - self.mean) * self.inv_std if self.follows_data else self.encoder.normalize(obs)
-        angles = (z @ self.projection).add_(self.phase)
-        return angles.cos() if angles.requires_grad else angles.cos_()
+        return random_cosines(z, self.projection, self.phase)
 
 
 class CustomStateFeatures(StateFeatureMap):

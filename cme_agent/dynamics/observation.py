@@ -36,6 +36,7 @@ import torch
 from torch import nn
 
 from cme_agent.buffer import Transitions
+from cme_agent.linalg import random_cosines
 
 RIDGE = 1e-6
 """Ridge of the least-squares fits, relative to the number of rows."""
@@ -138,9 +139,7 @@ class ChangeFeatures(nn.Module):
 
     def waves(self, linear: torch.Tensor) -> torch.Tensor:
         """sqrt(2 / D) cos(W x + b) of [s, a, 1] (N, d + 1): (N, D), in place where no gradient is taken."""
-        angles = ((linear[:, :-1] - self.mean) / self.std) @ self.projection
-        angles = angles.add_(self.phase)
-        waves = angles.cos() if angles.requires_grad else angles.cos_()
+        waves = random_cosines((linear[:, :-1] - self.mean) / self.std, self.projection, self.phase)
         return waves.mul_((2 / self.phase.numel()) ** 0.5)
 
 
