@@ -25,6 +25,9 @@ PYTHON_BOUNDS_HINT = 'policy_kwargs={"observation": {"low": [...], "high": [...]
 LOGGED_DIMS = 8
 """Estimated dims whose box :meth:`ObservationEncoder.fit` spells out in its log line."""
 
+NARROW = 1e-3
+"""An estimated half-range below this fraction of max(1, |centre|) is a constant's (:meth:`ObservationEncoder.fit`)."""
+
 MAX_FIT_ROWS = 100_000
 """Observations the quantiles of :meth:`ObservationEncoder.fit` are taken over (evenly spaced rows)."""
 
@@ -97,8 +100,11 @@ class ObservationEncoder(torch.nn.Module):
 
         Per dim: the quantiles q and 1 - q (``config.quantile``) widened by ``config.margin``
         of their range on each side, clipped to the space's bound where that side is finite;
-        a constant dim gets the half-range ``1e-3 max(1, |value|)``. At most 100,000 evenly
-        spaced rows are used. A second call is refused: phi's centres and psi's kernels are
+        a dim whose half-range is below :data:`NARROW` ``max(1, |centre|)`` (constant in the bulk of the
+        data) gets the half-range ``max(1, |centre|)``, its own magnitude: a value it takes later, or a
+        model's small error there, then stays of its size in normalised units instead of thousands of
+        half-ranges (InvertedDoublePendulum-v5's constraint force is 0 until the cart meets its rail).
+        At most 100,000 evenly spaced rows are used. A second call is refused: phi's centres and psi's kernels are
         placed in the frozen coordinates (:meth:`expand` widens a fitted box, for a caller that
         moves them).
 
@@ -177,7 +183,8 @@ class ObservationEncoder(torch.nn.Module):
 
     def _set_box(self, lower: torch.Tensor, upper: torch.Tensor) -> None:
         center = (upper + lower) / 2
-        half_range = torch.maximum((upper - lower) / 2, 1e-3 * center.abs().clamp_min(1.0))
+        magnitude = center.abs().clamp_min(1.0)
+        half_range = torch.where((upper - lower) / 2 < NARROW * magnitude, magnitude, (upper - lower) / 2)
         index = torch.as_tensor(self.fit_dims, device=self.center.device)
         self.center[index] = center.to(self.center)
         self.half_range[index] = half_range.to(self.half_range)

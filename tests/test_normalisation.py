@@ -39,12 +39,27 @@ def test_unusable_bounds_are_estimated_from_data_and_frozen():
     assert float(low[1]) == pytest.approx(float(q01 - 0.1 * (q99 - q01)), rel=1e-5)
     assert float(high[1]) == pytest.approx(float(q99 + 0.1 * (q99 - q01)), rel=1e-5)
     assert float(low[2]) == 0.0  # clipped to the space's finite side
-    assert 0 < float(encoder.half_range[3]) <= 1e-2 and float(encoder.center[3]) == pytest.approx(7.0)
+    assert float(encoder.half_range[3]) == pytest.approx(7.0) and float(encoder.center[3]) == pytest.approx(7.0)
     normalised = encoder.normalize(data)
     assert torch.isfinite(normalised).all()
     assert float(normalised[:, 3].abs().max()) == 0.0  # a constant dim maps to 0, no division by zero
     with pytest.raises(RuntimeError, match="frozen"):
         encoder.fit(data)
+
+
+@pytest.mark.parametrize("constant", [0.0, 7.0])
+def test_a_dim_constant_in_the_first_data_keeps_a_later_value_or_a_small_error_at_its_own_size(constant):
+    encoder = ObservationEncoder(SPACE, ObservationConfig())
+    data = _data()
+    data[:, 3] = constant
+    data[:3, 3] = constant + 10.0  # rarer than the quantiles: the bulk is constant
+    encoder.fit(data)
+    scale = max(1.0, constant)
+    assert float(encoder.half_range[3]) == pytest.approx(scale)
+    later = data[:2].clone()
+    later[:, 3] = torch.tensor([constant + 10.0, constant + 1e-3])  # the cart at its rail; a model's error
+    normalised = encoder.normalize(later)[:, 3]
+    torch.testing.assert_close(normalised, torch.tensor([10.0, 1e-3]) / scale)
 
 
 def test_dims_with_finite_bounds_keep_the_spaces():
