@@ -183,8 +183,8 @@ class ObservationEncoder(torch.nn.Module):
 
     def _set_box(self, lower: torch.Tensor, upper: torch.Tensor) -> None:
         center = (upper + lower) / 2
-        magnitude = center.abs().clamp_min(1.0)
-        half_range = torch.where((upper - lower) / 2 < NARROW * magnitude, magnitude, (upper - lower) / 2)
+        half_range, magnitude = (upper - lower) / 2, center.abs().clamp_min(1.0)
+        half_range = torch.where(half_range < NARROW * magnitude, magnitude, half_range)
         index = torch.as_tensor(self.fit_dims, device=self.center.device)
         self.center[index] = center.to(self.center)
         self.half_range[index] = half_range.to(self.half_range)

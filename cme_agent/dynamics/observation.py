@@ -119,11 +119,13 @@ class ChangeFeatures(nn.Module):
         self.register_buffer("std", torch.ones(dims, dtype=torch.float64))
         self.width = dims + 1 + n_fourier
 
-    def fit(self, obs: torch.Tensor, actions: torch.Tensor) -> None:
-        """The standardisation of (s, a): (N, obs_dim), (N, act_dim) float64."""
+    def fit(self, obs: torch.Tensor, actions: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
+        """Standardise (s, a) on these transitions and return W of s' - s by ridge regression on the features:
+        (N, obs_dim), (N, act_dim), (N, obs_dim) float64 -> (width, obs_dim)."""
         inputs = torch.cat([obs, actions], dim=1)
         self.mean.copy_(inputs.mean(dim=0))
         self.std.copy_(inputs.std(dim=0).clamp_min(1e-6))
+        return ridge(self(obs, actions), next_obs - obs)
 
     def forward(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """:param obs: (N, obs_dim). :param actions: (N, act_dim). :return: (N, width)."""
@@ -151,8 +153,7 @@ def change_r2(train: Transitions, holdout: Transitions, n_fourier: int = 0) -> t
     """
     fitted, measured = (transition_rows(data, ~data.terminated) for data in (train, holdout))
     features = ChangeFeatures(fitted[0].shape[1], fitted[1].shape[1], n_fourier)
-    features.fit(*fitted[:2])
-    change = ridge(features(*fitted[:2]), fitted[2] - fitted[0])
+    change = features.fit(*fitted)
     obs, actions, next_obs = measured
     target = next_obs - obs
     errors = (target - features(obs, actions) @ change).square().sum(dim=0)
@@ -206,8 +207,7 @@ class ObservationModel(nn.Module):
         obs, next_obs = data.obs.double(), data.next_obs.double()
         actions = data.actions.double().reshape(len(obs), self.act_dim)
         going_on = ~data.terminated
-        self.change_features.fit(obs[going_on], actions[going_on])
-        self.change.copy_(ridge(self.change_features(obs[going_on], actions[going_on]), (next_obs - obs)[going_on]))
+        self.change.copy_(self.change_features.fit(obs[going_on], actions[going_on], next_obs[going_on]))
         self.mean.copy_(next_obs.mean(dim=0))
         self.std.copy_(next_obs.std(dim=0).clamp_min(1e-6))
         rewards = data.rewards.double()
