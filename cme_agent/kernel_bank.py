@@ -79,7 +79,7 @@ def kernel_from_points(points: torch.Tensor, weights: torch.Tensor, out: torch.T
     :return: (N, q) kernel values
     """
     exponent = torch.mm(points, weights) if out is None else torch.mm(points, weights, out=out)
-    if torch.is_grad_enabled() and exponent.requires_grad:  # the action refinement differentiates through psi
+    if torch.is_grad_enabled() and exponent.requires_grad:  # a caller differentiates through psi (out-of-place)
         return torch.nn.functional.threshold(exponent.clamp(CUTOFF_EXPONENT, 0.0).exp(), _CUTOFF_VALUE, 0.0)
     return torch.nn.functional.threshold_(exponent.clamp_(CUTOFF_EXPONENT, 0.0).exp_(), _CUTOFF_VALUE, 0.0)
 

@@ -17,7 +17,6 @@ the policy is pi(a|s) = softmax_a(beta_k Qbar_k(s, a)) over the candidates (:met
 
 from __future__ import annotations
 
-import functools
 import itertools
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -30,7 +29,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import PyTorchObs
 from stable_baselines3.common.utils import is_vectorized_observation
 
-from cme_agent.action_search import projected_ascent
+from cme_agent.action_search import at_points, projected_ascent
 from cme_agent.config import (
     LOOKAHEAD_REFINE_STEPS,
     ActionSearchConfig,
@@ -414,8 +413,12 @@ class CMEPolicy(BasePolicy):
             actions, values = self.lookahead.greedy(self.dynamics.phi, obs, self.candidates)
             if not self.refines:
                 return actions, values
-            q = functools.partial(self.lookahead.action_values, self.dynamics.phi, obs, self.candidates)
-            return self._ascend(lambda encoded: q(self.dynamics.action_encoder.decode(encoded)), actions, values)
+
+            def q(states: torch.Tensor, encoded: torch.Tensor) -> torch.Tensor:
+                decoded = self.dynamics.action_encoder.decode(encoded)
+                return self.lookahead.action_values(self.dynamics.phi, states, self.candidates, decoded)
+
+            return self._ascend(at_points(q, obs), actions, values)
         step = self.greedy_step(obs)
         return step.actions, step.values
 
@@ -432,12 +435,12 @@ class CMEPolicy(BasePolicy):
         :param state_only: (N,) Q's term without the action, <theta_phi, phi(s)>
         :return: the refined actions (N, act_dim) and their Q (N,), never below the candidate's
         """
-        return self._ascend(functools.partial(self._q_in_action, obs, state, state_only), actions, values)
+        return self._ascend(at_points(self._q_in_action, obs, state, state_only), actions, values)
 
     def _ascend(
         self, q: Callable[[torch.Tensor], torch.Tensor], actions: torch.Tensor, values: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """:func:`projected_ascent` on ``q`` (of normalised actions, (N, act_dim) -> (N,)) from the best
+        """:func:`projected_ascent` on ``q`` (of M normalised actions per row, (N, M, act_dim) -> (N, M)) from the best
         candidates (N, act_dim) in env units and their values (N,): the refined actions in env units and
         their values, each kept only where it beats the candidate's."""
         encoder, search = self.dynamics.action_encoder, self.action_search

@@ -156,7 +156,7 @@ class RBFGrid(StateFeatureMap):
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         """:param obs: (N, obs_dim) observations. :return: (N, p) features."""
-        if obs.requires_grad and torch.is_grad_enabled():  # differentiable (out= is not): a search through the model
+        if obs.requires_grad and torch.is_grad_enabled():  # differentiable (out= is not) for a caller taking gradients
             factors = self.bumps(obs)
             grid = (factors[0][:, :, None] * self._tail(factors)[:, None, :]).flatten(1)
             return torch.cat([grid, obs.new_ones(obs.shape[0], 1)], dim=1)

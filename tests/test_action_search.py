@@ -11,12 +11,13 @@ from cme_agent.action_search import projected_ascent
 
 
 def quadratic(target: torch.Tensor, curvature: torch.Tensor, seen: list[torch.Tensor] | None = None):
-    """q(a) = -sum_d c_d (a_d - target_d)^2 + 3 (an anisotropic concave quadratic), recording the points it is asked at."""
+    """q(a) = -sum_d c_d (a_d - target_d)^2 + 3 (an anisotropic concave quadratic) at points (..., d) -> (...),
+    recording the points it is asked at."""
 
     def q(points: torch.Tensor) -> torch.Tensor:
         if seen is not None:
             seen.append(points.detach().clone())
-        return 3.0 - ((points - target) ** 2 * curvature).sum(dim=1)
+        return 3.0 - ((points - target) ** 2 * curvature).sum(dim=-1)
 
     return q
 
@@ -54,7 +55,7 @@ def test_q_never_falls_and_zero_steps_return_the_start() -> None:
     weights = torch.randn(8, 4, generator=generator)
 
     def bumpy(points: torch.Tensor) -> torch.Tensor:  # not concave: many local maxima
-        return torch.sin(points @ weights.T * 3).sum(dim=1)
+        return torch.sin(points @ weights.T * 3).sum(dim=-1)
 
     start = starts(4)
     points, values = projected_ascent(bumpy, start, steps=20, step_size=0.3)
