@@ -430,8 +430,8 @@ class ActionSearchConfig:
         regular grid of ``grid_size``
     :param max_grid_dims: largest action dimension searched on a grid
     :param n_samples: uniformly sampled candidates (fixed at construction) in higher dimensions
-    :param refine_steps: projected gradient-ascent steps from the best candidate, on Q through
-        psi (the CME) or on the first action's looked-ahead value through the model of the observation;
+    :param refine_steps: steps of :func:`~cme_agent.action_search.projected_ascent` from the best candidate, on Q
+        through psi (the CME) or on the first action's looked-ahead value through the model of the observation;
         None: :data:`LOOKAHEAD_REFINE_STEPS` with the model of the observation where its reward varies, else 0
     :param refine_lr: step of the refinement, in normalised action units
     :param lookahead_depth: env steps the action looks ahead through the model of the

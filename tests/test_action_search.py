@@ -7,7 +7,7 @@ import torch
 from gymnasium import spaces
 
 from cme_agent import CMEPolicy, RewardSpec
-from cme_agent.action_search import projected_ascent
+from cme_agent.action_search import at_points, projected_ascent
 
 
 def quadratic(target: torch.Tensor, curvature: torch.Tensor, seen: list[torch.Tensor] | None = None):
@@ -83,3 +83,16 @@ def test_greedy_step_of_a_six_dim_box_policy_finds_the_known_maximiser_within_th
     assert (actions - best).abs().max() < 0.03
     assert torch.allclose(values, reward.step_reward(obs, actions), atol=1e-5)
     assert torch.allclose(policy.act(obs), actions)
+
+
+def test_at_points_pairs_each_row_with_its_own_points() -> None:
+    generator = torch.Generator().manual_seed(5)
+    states, weights = torch.randn(4, 3, generator=generator), torch.randn(3, generator=generator)
+    points = torch.rand(4, 7, 2, generator=generator) * 2 - 1
+
+    def q_rows(rows: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:  # paired rows: (N, 3), (N, 2) -> (N,)
+        return rows @ weights * actions[:, 0] - actions[:, 1].square()
+
+    values = at_points(q_rows, states)(points)
+    expected = torch.stack([q_rows(states[i].expand(7, 3), points[i]) for i in range(4)])
+    assert values.shape == (4, 7) and torch.allclose(values, expected)
