@@ -312,7 +312,7 @@ class CMEPolicy(BasePolicy):
         return values.add_((phi @ self.theta_phi).unsqueeze(1))
 
     def greedy_step(self, obs: torch.Tensor, readout: torch.Tensor | None = None) -> GreedyStep:
-        """pi_{k+1} = greedy(Q_k) at a batch of states: the best candidate, refined by gradient
+        """pi_{k+1} = greedy(Q_k) at a batch of states: the best candidate, refined by projected
         ascent if configured, with phi(s) and psi(s, pi(s)) = S(s) * A(pi(s)) built from the
         same state factor S. S is built in blocks of rows small enough to stay in the CPU's
         cache, and each block is used (Q over the candidates, then psi, then psi @ readout)
