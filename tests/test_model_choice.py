@@ -65,6 +65,30 @@ def test_the_waves_survive_save_load_and_a_file_saved_before_them_loads_linear(t
     torch.testing.assert_close(fresh.next_obs(data.obs, data.actions), linear.next_obs(data.obs, data.actions))
 
 
+def test_the_waves_hold_each_input_within_its_range_on_the_data() -> None:
+    model = ObservationModel(4, 1, WAVES)
+    data = synthetic(400, seed=0, smooth=True)
+    model.fit(data)
+    obs, actions = synthetic(50, seed=1, smooth=True).obs.double(), data.actions[:50].double()
+    # dim 3 is 0 on every transition: a rolled-out state 1e-3 off it (1,000 of its clamped standard deviations)
+    # moves only that dim, by its own 1e-3, instead of reaching waves the fit never saw
+    off = obs.clone()
+    off[:, 3] = 1e-3
+    moved = model.next_obs(off, actions) - model.next_obs(obs, actions)
+    torch.testing.assert_close(moved, torch.zeros_like(moved).index_fill_(1, torch.tensor([3]), 1e-3), atol=1e-9, rtol=0)
+    # beyond the data's range in dim 0 the waves stay at their value at its edge
+    features, edge = model.change_features, data.obs[:, 0].double().max()
+    far, at_edge = obs.clone(), obs.clone()
+    far[:, 0], at_edge[:, 0] = edge + 5.0, edge
+    linear = torch.cat([far, actions, torch.ones(50, 1, dtype=far.dtype)], dim=1)
+    linear_edge = torch.cat([at_edge, actions, torch.ones(50, 1, dtype=far.dtype)], dim=1)
+    torch.testing.assert_close(features.waves(linear), features.waves(linear_edge))
+    legacy = {key: value for key, value in model.state_dict().items() if key != "change_features.input_range"}
+    unbounded = ObservationModel(4, 1, WAVES)
+    unbounded.load_state_dict(legacy)  # a file saved before the range predicts as it did: unbounded
+    assert bool(unbounded.change_features.input_range.isinf().all())
+
+
 def test_an_agent_with_waves_learns_acts_and_survives_save_load(tmp_path) -> None:
     waves = {"kind": "observation", "change_fourier": WAVES}
     model = CMEPolicyIteration("CMEPolicy", "Pendulum-v1", seed=0, model_update=waves, **PLAIN).learn(400)

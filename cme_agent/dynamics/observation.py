@@ -100,8 +100,10 @@ def logistic(features: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
 
 class ChangeFeatures(nn.Module):
     """The inputs of the change model: [s, a, 1], followed by D random Fourier features
-    sqrt(2 / D) cos(W x + b) of x = (s, a) standardised per dim, W ~ N(0, 1 / (CHANGE_LENGTH_SCALE^2 d)),
-    d = obs_dim + act_dim (D = 0: the linear model).
+    sqrt(2 / D) cos(W x + b) of x = (s, a) standardised per dim and held within its range on the fit's data,
+    W ~ N(0, 1 / (CHANGE_LENGTH_SCALE^2 d)), d = obs_dim + act_dim (D = 0: the linear model). The range keeps a
+    rolled-out s^' off the data from reaching waves the fit never saw: a dim constant there (InvertedDoublePendulum's
+    constraint force) would otherwise turn a 1e-3 error into a thousand standard deviations.
 
     :param obs_dim: the observation's dims
     :param act_dim: the Box action's dims
@@ -117,14 +119,17 @@ class ChangeFeatures(nn.Module):
         self.register_buffer("phase", torch.rand(n_fourier, generator=generator, dtype=torch.float64) * 2 * torch.pi)
         self.register_buffer("mean", torch.zeros(dims, dtype=torch.float64))
         self.register_buffer("std", torch.ones(dims, dtype=torch.float64))
+        self.register_buffer("input_range", unbounded_range(dims))
         self.width = dims + 1 + n_fourier
 
     def fit(self, obs: torch.Tensor, actions: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
-        """Standardise (s, a) on these transitions and return W of s' - s by ridge regression on the features:
-        (N, obs_dim), (N, act_dim), (N, obs_dim) float64 -> (width, obs_dim)."""
+        """Standardise (s, a) on these transitions, keep the range of the standardised inputs, and return W of s' - s
+        by ridge regression on the features: (N, obs_dim), (N, act_dim), (N, obs_dim) float64 -> (width, obs_dim)."""
         inputs = torch.cat([obs, actions], dim=1)
         self.mean.copy_(inputs.mean(dim=0))
         self.std.copy_(inputs.std(dim=0).clamp_min(1e-6))
+        standardised = (inputs - self.mean) / self.std
+        self.input_range.copy_(torch.stack([standardised.min(dim=0).values, standardised.max(dim=0).values]))
         return ridge(self(obs, actions), next_obs - obs)
 
     def forward(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
@@ -140,8 +145,10 @@ class ChangeFeatures(nn.Module):
         return torch.addmm(linear @ weights[: linear.shape[1]], self.waves(linear), weights[linear.shape[1] :])
 
     def waves(self, linear: torch.Tensor) -> torch.Tensor:
-        """sqrt(2 / D) cos(W x + b) of [s, a, 1] (N, d + 1): (N, D), in place where no gradient is taken."""
-        waves = random_cosines((linear[:, :-1] - self.mean) / self.std, self.projection, self.phase)
+        """sqrt(2 / D) cos(W x + b) of [s, a, 1] (N, d + 1), x within its range: (N, D), in place where no gradient is
+        taken."""
+        standardised = ((linear[:, :-1] - self.mean) / self.std).clamp(*self.input_range)
+        waves = random_cosines(standardised, self.projection, self.phase)
         return waves.mul_((2 / self.phase.numel()) ** 0.5)
 
 
@@ -259,6 +266,8 @@ class ObservationModel(nn.Module):
         if prefix + "change_features.mean" not in state_dict and prefix + "change" in state_dict:  # saved linear, before them
             fresh = self.change_features.state_dict()
             state_dict.update({f"{prefix}change_features.{name}": value for name, value in fresh.items()})
+        if prefix + "change_features.input_range" not in state_dict and prefix + "change" in state_dict:  # saved before it
+            state_dict[prefix + "change_features.input_range"] = unbounded_range(self.change_features.mean.numel())
         if prefix + "fold_range" not in state_dict and prefix + "reward_weights" in state_dict:  # saved before the ranges
             state_dict[prefix + "z_range"] = unbounded_range(self.obs_dim)
             state_dict[prefix + "fold_range"] = unbounded_range(REWARD_PROJECTIONS)
