@@ -885,10 +885,17 @@ def report(args: argparse.Namespace, rows: list[dict[str, Any]]) -> str:
     return "\n".join(sections)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def mujoco_parser(description: str) -> argparse.ArgumentParser:
+    """The parser of a diagnostic on a MuJoCo env: ``--env-id`` (InvertedDoublePendulum-v5 by default) and the seed
+    arguments, the stem left to the diagnostic (empty)."""
+    parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env-id", default="InvertedDoublePendulum-v5", help="a MuJoCo env id with a Box action space")
     add_seed_arguments(parser, "")
+    return parser
+
+
+def main() -> None:
+    parser = mujoco_parser(__doc__)
     parser.add_argument("--collection", type=int, default=2_000, help="|C|: states for eq. (7), the model error and R^2")
     parser.add_argument("--states", type=int, default=500, help="states of C where the action set is measured on V_true")
     parser.add_argument("--exact-states", type=int, default=100, help="states of those where the exact Q^pi is rolled out")

@@ -33,8 +33,14 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from benchmarks.common import SeedFiles, add_seed_arguments, command_line, map_seeds, markdown_table, write_markdown
-from benchmarks.diagnostics.gap_decomposition import COLLECTION_SEED_OFFSET, recorded_row, simulate, visited_states
+from benchmarks.common import SeedFiles, command_line, map_seeds, markdown_table, write_markdown
+from benchmarks.diagnostics.gap_decomposition import (
+    COLLECTION_SEED_OFFSET,
+    mujoco_parser,
+    recorded_row,
+    simulate,
+    visited_states,
+)
 from cme_agent import CMEPolicyIteration
 from cme_agent.lookahead import LookaheadPlanner
 
@@ -183,9 +189,7 @@ def report(args: argparse.Namespace, rows: list[dict[str, Any]]) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--env-id", default="InvertedDoublePendulum-v5", help="a MuJoCo env id with a Box action space")
-    add_seed_arguments(parser, "")
+    parser = mujoco_parser(__doc__)
     parser.add_argument("--starts", type=int, default=500, help="states the rollouts start from")
     parser.add_argument("--horizon", type=int, default=8, help="H: steps of each rollout")
     parser.set_defaults(workers=1, kwargs=json.dumps(WAVES))
