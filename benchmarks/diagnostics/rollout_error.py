@@ -52,7 +52,12 @@ REPORTED_STEPS = (1, 2, 3, 5, 8, 13, 20)
 
 
 def rollout_errors(
-    step: Any, start: torch.Tensor, actions: torch.Tensor, true_obs: torch.Tensor, ended: torch.Tensor, std: torch.Tensor
+    step: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+    start: torch.Tensor,
+    actions: torch.Tensor,
+    true_obs: torch.Tensor,
+    ended: torch.Tensor,
+    std: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The model rolled from ``start`` with ``actions``, its error against the true rollout at each step.
 
@@ -137,8 +142,12 @@ def measure(agent: CMEPolicyIteration, job: Job) -> dict[str, Any]:
         tensors = (torch.as_tensor(a, dtype=torch.float32) for a in (starts.obs, actions, states))
         errors, counts = rollout_errors(model_step, *tensors, torch.as_tensor(ended), std)
         worst = errors.max(dim=1).values
-        row[source] = {"mean": errors.mean(dim=1).tolist(), "worst": worst.tolist(), "count": counts.tolist()}
-        row[source]["per_dim"] = errors.tolist()
+        row[source] = {
+            "mean": errors.mean(dim=1).tolist(),
+            "worst": worst.tolist(),
+            "count": counts.tolist(),
+            "per_dim": errors.tolist(),
+        }
     return row
 
 
