@@ -9,7 +9,7 @@ import torch
 from conftest import linear_system
 
 from cme_agent.buffer import Transitions
-from cme_agent.dynamics.observation import REWARD_PROJECTIONS, ObservationModel, quadratic, ridge
+from cme_agent.dynamics.observation import REWARD_CONES, REWARD_PROJECTIONS, ObservationModel, quadratic, ridge
 
 GOAL = torch.tensor([0.6, -0.4], dtype=torch.float64)
 
@@ -66,7 +66,7 @@ def test_the_projections_follow_the_dims_the_reward_changes_with_and_survive_sav
 
     raw = ObservationModel(obs_dim=5, act_dim=1)
     raw.fit(train)
-    raw.projections.copy_(raw.directions)  # the same fit with the directions uniform on the sphere
+    raw.set_metric(torch.eye(5, dtype=torch.float64))  # the same fit with the directions uniform on the sphere
     raw.fit_reward(train.next_obs.double(), train.actions.double(), train.rewards.double())
     assert error(model) < 0.5 * error(raw), (error(model), error(raw))
     loaded = ObservationModel(obs_dim=5, act_dim=1)
@@ -107,9 +107,9 @@ def test_off_the_data_the_reward_is_held_near_the_edge_and_does_not_rise_to_the_
 def test_a_model_saved_before_the_projections_loads_and_predicts_as_it_did() -> None:
     model = ObservationModel(obs_dim=4, act_dim=2)
     model.fit(point_mass(500, seed=2))
-    new_keys = ("projections", "offsets", "z_range", "fold_range")
+    new_keys = ("projections", "offsets", "z_range", "fold_range", "cone_metric", "cone_centres")
     old = {key: value.clone() for key, value in model.state_dict().items() if key not in new_keys}
-    old["reward_weights"] = old["reward_weights"][:-REWARD_PROJECTIONS]
+    old["reward_weights"] = old["reward_weights"][: -REWARD_PROJECTIONS - REWARD_CONES]
     loaded = ObservationModel(obs_dim=4, act_dim=2)
     loaded.load_state_dict(old)
     data = point_mass(50, seed=3)
@@ -117,6 +117,18 @@ def test_a_model_saved_before_the_projections_loads_and_predicts_as_it_did() -> 
     expected = torch.cat([features, data.actions.double().square()], 1) @ old["reward_weights"]
     torch.testing.assert_close(loaded.reward(data.next_obs, data.actions), expected)
     torch.testing.assert_close(loaded.next_obs(data.obs, data.actions), model.next_obs(data.obs, data.actions))
+
+
+def test_a_model_saved_before_the_cones_loads_and_predicts_as_it_did() -> None:
+    model = ObservationModel(obs_dim=4, act_dim=2)
+    model.fit(point_mass(500, seed=2))
+    model.reward_weights[-REWARD_CONES:] = 0  # what the same fit without the cones predicts with these weights
+    old = {key: value.clone() for key, value in model.state_dict().items() if not key.startswith("cone_")}
+    old["reward_weights"] = old["reward_weights"][:-REWARD_CONES]
+    loaded = ObservationModel(obs_dim=4, act_dim=2)
+    loaded.load_state_dict(old)
+    data = point_mass(50, seed=3)
+    torch.testing.assert_close(loaded.reward(data.next_obs, data.actions), model.reward(data.next_obs, data.actions))
 
 
 def test_the_reward_of_ending_is_learned_apart_and_weighed_by_the_termination() -> None:

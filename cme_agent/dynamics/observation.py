@@ -7,7 +7,7 @@ predicts the next observation, whether the episode goes on and the reward:
   ``model_update.change_fourier``), W by ridge regression on the non-terminal transitions;
 - P(terminated | s') = sigmoid(u^T f(s')), f = [z, z^2, 1] of the standardised s' (a two-sided
   boundary such as |angle| > 0.2 needs the squares), u by L2-regularised logistic regression;
-- the reward of going on, r(s', a) = v^T [f(s'), a, a^2, |P^T z + b|], v by ridge regression on the
+- the reward of going on, r(s', a) = v^T [f(s'), a, a^2, |P^T z + b|, |L (z - c)|], v by ridge regression on the
   non-terminal transitions (a small ridge: a reward quadratic in s' and a stays exact), within the
   range of their rewards, and the mean reward of the terminal ones, r_end: a step is worth
   g r(s', a) + (1 - g) r_end. The last features are M random
@@ -18,7 +18,11 @@ predicts the next observation, whether the episode goes on and the reward:
   reward's gradients in z, their expected outer product M = E[grad grad^T] (the EGOP, large along the
   directions the reward changes with) maps the directions to M w / |M w|, and the reward is fitted
   again on those. A reward of a few of the dims gets all its folds there (PointGoal2D's cone of the
-  position: near-goal RMSE 0.006 against 0.032 with the directions uniform in the 4 dims). Each
+  position: near-goal RMSE 0.006 against 0.032 with the directions uniform in the 4 dims). The folds' kinks
+  lie where their offsets fall, so the fitted cone's tip can miss the goal by a few hundredths, and a planner
+  rests where the fitted reward peaks: K cones |L (z - c_j)| centred at rows of the fit's data (dense where the
+  agent dwells) with L = M^(1/2) put a tip at the data's own states (on a PointGoal2D agent's data the peak
+  moved from 0.046 to 0.003 off the goal). Each
   feature is held within the range it had on the data (z per dim, each fold's argument): off the data
   the reward stays at what it was at the data's edge instead of growing linearly, as a planner would
   otherwise find (a cone fitted inside the data rose to its top 2 away from the goal).
@@ -62,6 +66,10 @@ CHANGE_LENGTH_SCALE = 2.0
 random actions, held-out R^2 0.98-1.0 on its joint and fingertip dims (500 waves; linear: below 0.05)."""
 METRIC_FLOOR = 1e-6
 """Each eigenvalue of the metric M is at least this fraction of its largest: no direction maps to zero."""
+REWARD_CONES = 64
+"""K, the cones |L (z - c_j)| among the reward's features, centred at K rows of the fit's data."""
+CONE_ROUNDING = 1e-3
+"""Each cone is sqrt(|L (z - c_j)|^2 + CONE_ROUNDING^2): its gradient stays finite at its centre (a row of the data)."""
 
 
 def quadratic(x: torch.Tensor) -> torch.Tensor:
@@ -181,7 +189,7 @@ def transition_rows(data: Transitions, rows: torch.Tensor) -> tuple[torch.Tensor
 
 class ObservationModel(nn.Module):
     """s^' = s + W^T [s, a, 1]; P(terminated | s') on quadratic features of s'; the reward of going on
-    on those, a, a^2 and folded random projections in the reward's metric, and of ending (module docstring).
+    on those, a, a^2, folded random projections and cones in the reward's metric, and of ending (module docstring).
 
     :param obs_dim: the observation's dims
     :param act_dim: the Box action's dims
@@ -201,7 +209,9 @@ class ObservationModel(nn.Module):
         self.register_buffer("projections", self.directions.clone())
         offsets = (2 * torch.rand(REWARD_PROJECTIONS, generator=generator, dtype=torch.float64) - 1) * PROJECTION_OFFSET
         self.register_buffer("offsets", offsets)
-        reward_features = state_features + 2 * act_dim + REWARD_PROJECTIONS
+        self.register_buffer("cone_metric", torch.eye(obs_dim, dtype=torch.float64))
+        self.register_buffer("cone_centres", torch.zeros(REWARD_CONES, obs_dim, dtype=torch.float64))
+        reward_features = state_features + 2 * act_dim + REWARD_PROJECTIONS + REWARD_CONES
         self.register_buffer("reward_weights", torch.zeros(reward_features, dtype=torch.float64))
         self.register_buffer("z_range", unbounded_range(obs_dim))
         self.register_buffer("fold_range", unbounded_range(REWARD_PROJECTIONS))
@@ -223,38 +233,48 @@ class ObservationModel(nn.Module):
         self.termination.copy_(logistic(quadratic(self.standardise(next_obs)), data.terminated.double()))
 
     def fit_reward_of_going_on(self, next_obs: torch.Tensor, actions: torch.Tensor, rewards: torch.Tensor) -> None:
-        """P in the reward's metric (from a first fit on at most METRIC_ROWS evenly spaced transitions; a constant
-        reward keeps the raw directions), then v on all the transitions, and the range of their rewards:
-        (N, obs_dim), (N, act_dim), (N,) float64, the non-terminal transitions."""
+        """P and L in the reward's metric (from a first fit on at most METRIC_ROWS evenly spaced transitions; a
+        constant reward keeps the raw directions and L = I), the cones' centres at K rows, then v on all the
+        transitions, and the range of their rewards: (N, obs_dim), (N, act_dim), (N,) float64, the non-terminal
+        transitions."""
+        generator = torch.Generator().manual_seed(PROJECTION_SEED)
+        self.cone_centres.copy_(self.standardise(next_obs[torch.randint(len(next_obs), (REWARD_CONES,), generator=generator)]))
         self.projections.copy_(self.directions)
+        self.cone_metric.copy_(torch.eye(self.obs_dim, dtype=torch.float64))
         if rewards.max() > rewards.min():
             rows = slice(None, None, -(-len(rewards) // METRIC_ROWS))
             self.fit_reward(next_obs[rows], actions[rows], rewards[rows])
-            self.projections.copy_(self.metric_directions(next_obs[rows], actions[rows]))
+            self.set_metric(self.reward_metric(next_obs[rows], actions[rows]))
         self.fit_reward(next_obs, actions, rewards)
         self.reward_range.copy_(torch.stack([rewards.min(), rewards.max()]))
 
     def fit_reward(self, next_obs: torch.Tensor, actions: torch.Tensor, rewards: torch.Tensor) -> None:
-        """v of the reward of going on by ridge regression on its features with the current P, and the range of
-        z and of each fold's argument there: (N, obs_dim), (N, act_dim), (N,) float64."""
+        """v of the reward of going on by ridge regression on its features with the current P and L, and the range
+        of z and of each fold's argument there: (N, obs_dim), (N, act_dim), (N,) float64."""
         z = self.standardise(next_obs)
         self.z_range.copy_(torch.stack([z.min(dim=0).values, z.max(dim=0).values]))
         folds = z @ self.projections + self.offsets
         self.fold_range.copy_(torch.stack([folds.min(dim=0).values, folds.max(dim=0).values]))
         self.reward_weights.copy_(ridge(self.reward_features(next_obs, actions), rewards, REWARD_RIDGE))
 
-    def metric_directions(self, next_obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        """The raw directions w in the metric of the fitted reward, M w / |M w| with M = E[grad_z r grad_z r^T]
-        over the given transitions (the expected gradient outer product), its eigenvalues floored at
-        METRIC_FLOOR of the largest: (N, obs_dim), (N, act_dim) float64 -> (obs_dim, M) unit columns."""
+    def reward_metric(self, next_obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """M = E[grad_z r grad_z r^T] of the fitted reward over the given transitions (the expected gradient outer
+        product), its eigenvalues floored at METRIC_FLOOR of the largest and scaled to a largest of 1:
+        (N, obs_dim), (N, act_dim) float64 -> (obs_dim, obs_dim)."""
         with torch.enable_grad():
             z = self.standardise(next_obs).requires_grad_(True)
             fitted = self.reward_features(z * self.std + self.mean, actions) @ self.reward_weights
             (gradients,) = torch.autograd.grad(fitted.sum(), z)
         values, vectors = torch.linalg.eigh(gradients.T @ gradients / len(z))
-        values = values.clamp_min(METRIC_FLOOR * values.max().clamp_min(torch.finfo(values.dtype).tiny))
-        mapped = vectors @ (values[:, None] * (vectors.T @ self.directions))
-        return mapped / mapped.norm(dim=0, keepdim=True)
+        largest = values.max().clamp_min(torch.finfo(values.dtype).tiny)
+        return vectors @ torch.diag(values.clamp_min(METRIC_FLOOR * largest) / largest) @ vectors.T
+
+    def set_metric(self, metric: torch.Tensor) -> None:
+        """P = M w / |M w| of the raw directions w and L = M^(1/2): (obs_dim, obs_dim) M, symmetric positive."""
+        mapped = metric @ self.directions
+        self.projections.copy_(mapped / mapped.norm(dim=0, keepdim=True))
+        values, vectors = torch.linalg.eigh(metric)
+        self.cone_metric.copy_(vectors @ torch.diag(values.clamp_min(0).sqrt()) @ vectors.T)
 
     def _load_from_state_dict(self, state_dict: dict[str, torch.Tensor], prefix: str, *args: Any, **kwargs: Any) -> None:
         if prefix + "projections" not in state_dict and prefix + "reward_weights" in state_dict:  # saved before them
@@ -271,6 +291,10 @@ class ObservationModel(nn.Module):
         if prefix + "fold_range" not in state_dict and prefix + "reward_weights" in state_dict:  # saved before the ranges
             state_dict[prefix + "z_range"] = unbounded_range(self.obs_dim)
             state_dict[prefix + "fold_range"] = unbounded_range(REWARD_PROJECTIONS)
+        if prefix + "cone_centres" not in state_dict and prefix + "reward_weights" in state_dict:  # saved before the cones
+            state_dict[prefix + "cone_metric"], state_dict[prefix + "cone_centres"] = self.cone_metric, self.cone_centres
+            padding = torch.zeros(REWARD_CONES, dtype=torch.float64)
+            state_dict[prefix + "reward_weights"] = torch.cat([state_dict[prefix + "reward_weights"], padding])
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def standardise(self, next_obs: torch.Tensor) -> torch.Tensor:
@@ -278,17 +302,21 @@ class ObservationModel(nn.Module):
         return (next_obs - self.mean) / self.std
 
     def reward_parts(self, next_obs: torch.Tensor, actions: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """The blocks of :meth:`reward_features`: [z, z^2, 1] (N, 2 obs_dim + 1), a and a^2 (N, act_dim) each, and
-        |P^T z + b| (N, M), z and P^T z + b each within its range on the fit's data."""
+        """The blocks of :meth:`reward_features`: [z, z^2, 1] (N, 2 obs_dim + 1), a and a^2 (N, act_dim) each,
+        |P^T z + b| (N, M) and the cones |L (z - c_j)| (N, K), z and P^T z + b each within its range on the fit's
+        data."""
         z = self.standardise(next_obs).clamp(*self.z_range)
         folds = affine(z, z[:, :0]) @ torch.cat([self.projections, self.offsets[None]])  # one pass over (N, M)
+        cones = torch.cdist(z @ self.cone_metric, self.cone_centres @ self.cone_metric).hypot(
+            torch.tensor(CONE_ROUNDING, dtype=z.dtype)
+        )
         if folds.requires_grad:
-            return quadratic(z), actions, actions.square(), folds.clamp(*self.fold_range).abs()
-        return quadratic(z), actions, actions.square(), folds.clamp_(*self.fold_range).abs_()
+            return quadratic(z), actions, actions.square(), folds.clamp(*self.fold_range).abs(), cones
+        return quadratic(z), actions, actions.square(), folds.clamp_(*self.fold_range).abs_(), cones
 
     def reward_features(self, next_obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        """[z, z^2, 1, a, a^2, |P^T z + b|] (:meth:`reward_parts`): (N, obs_dim), (N, act_dim) ->
-        (N, 2 obs_dim + 1 + 2 act_dim + M)."""
+        """[z, z^2, 1, a, a^2, |P^T z + b|, |L (z - c)|] (:meth:`reward_parts`): (N, obs_dim), (N, act_dim) ->
+        (N, 2 obs_dim + 1 + 2 act_dim + M + K)."""
         return torch.cat(self.reward_parts(next_obs, actions), dim=1)
 
     def next_obs(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
