@@ -204,34 +204,55 @@ class LookaheadPlanner(nn.Module):
         self.value_weights = torch.zeros_like(self.value_weights)
 
     @torch.no_grad()
-    def greedy(self, phi: StateFeatureMap, obs: torch.Tensor, candidates: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """The first action of the best d-step path and its value L_d(s): (N, obs_dim) -> (N, ...) candidates, (N,)."""
-        values = self.backed_up(phi, obs, candidates, self.depth - 1)
+    def greedy(
+        self, phi: StateFeatureMap, obs: torch.Tensor, candidates: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The first action of the best d-step path, its value L_d(s) and the path's later actions:
+        (N, obs_dim) -> (N, ...) candidates, (N,) and (N, d - 1, ...) candidates."""
+        values, paths = self.backed_up_paths(phi, obs, candidates, self.depth - 1)
         best = values.argmax(dim=1)
-        return candidates[best], values.gather(1, best.unsqueeze(1)).squeeze(1)
+        rows = torch.arange(len(obs))
+        return candidates[best], values[rows, best], candidates[paths[rows, best]]
 
     def action_values(
-        self, phi: StateFeatureMap, obs: torch.Tensor, candidates: torch.Tensor, actions: torch.Tensor
+        self, phi: StateFeatureMap, obs: torch.Tensor, actions: torch.Tensor, later: torch.Tensor
     ) -> torch.Tensor:
-        """r + gamma g L_{d-1}(s^'_a) of each state's own first action, the candidates after it,
-        differentiable in the actions (the continuous search of the first action): (N,).
+        """The value of each state's own first action followed by the given later actions, open loop:
+        r_0 + gamma g_0 (r_1 + ... + gamma g_{d-1} <w, phi(s_d)>), differentiable in the actions. With
+        ``later`` the best path's (:meth:`greedy`) it is L_d at the path's first action and, by the
+        envelope theorem, has L_d's slope in the first action wherever the best path does not switch:
+        the continuous search of the first action at d model steps a point instead of K^(d-1) leaves.
 
         :param phi: the state features
         :param obs: (N, obs_dim) observations
-        :param candidates: (K, act_dim) the actions of the later steps
-        :param actions: (N, act_dim) Box actions, env units
+        :param actions: (N, act_dim) the first Box actions, env units
+        :param later: (N, d - 1, act_dim) the actions of the later steps
+        :return: (N,)
         """
-        next_obs, going_on, rewards = self.transition(obs, actions)
-        return rewards + self.gamma * going_on * self.leaf_values(phi, next_obs, candidates, self.depth - 1)
+        steps = []
+        for action in (actions, *later.unbind(1)):
+            obs, going_on, rewards = self.transition(obs, action)
+            steps.append((going_on, rewards))
+        value = blocked_values(phi, obs, self.value_weights)
+        for going_on, rewards in reversed(steps):
+            value = rewards + self.gamma * going_on * value
+        return value
 
     def backed_up(self, phi: StateFeatureMap, obs: torch.Tensor, candidates: torch.Tensor, remaining: int) -> torch.Tensor:
         """r + gamma g L_remaining(s^'_a) at every state and candidate: (N, obs_dim) -> (N, K)."""
-        next_obs, going_on, rewards = self.step(obs, candidates)
-        tail = self.leaf_values(phi, next_obs, candidates, remaining)
-        return (rewards + self.gamma * going_on * tail).reshape(len(obs), len(candidates))
+        return self.backed_up_paths(phi, obs, candidates, remaining)[0]
 
-    def leaf_values(self, phi: StateFeatureMap, obs: torch.Tensor, candidates: torch.Tensor, remaining: int) -> torch.Tensor:
-        """L_remaining(s): <w, phi(s)> at 0, else the best of :meth:`backed_up`: (M, obs_dim) -> (M,)."""
+    def backed_up_paths(
+        self, phi: StateFeatureMap, obs: torch.Tensor, candidates: torch.Tensor, remaining: int
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`backed_up` and, after each state's candidate, the candidate indices of the best path of
+        the ``remaining`` steps below it: (N, obs_dim) -> (N, K), (N, K, remaining) int64."""
+        next_obs, going_on, rewards = self.step(obs, candidates)
         if remaining == 0:
-            return blocked_values(phi, obs, self.value_weights)
-        return self.backed_up(phi, obs, candidates, remaining - 1).max(dim=1).values
+            tail, paths = blocked_values(phi, next_obs, self.value_weights), next_obs.new_empty(len(next_obs), 0).long()
+        else:
+            values, below = self.backed_up_paths(phi, next_obs, candidates, remaining - 1)
+            tail, best = values.max(dim=1)
+            paths = torch.cat([best.unsqueeze(1), below[torch.arange(len(best)), best]], dim=1)
+        k = len(candidates)
+        return (rewards + self.gamma * going_on * tail).reshape(len(obs), k), paths.reshape(len(obs), k, remaining)

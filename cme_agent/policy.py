@@ -410,15 +410,15 @@ class CMEPolicy(BasePolicy):
         """The greedy actions and their Q values (with the lookahead: its actions and their looked-ahead
         values): (N, obs_dim) -> (N, act_dim) or (N,), and (N,)."""
         if self.lookahead is not None:
-            actions, values = self.lookahead.greedy(self.dynamics.phi, obs, self.candidates)
+            actions, values, later = self.lookahead.greedy(self.dynamics.phi, obs, self.candidates)
             if not self.refines:
                 return actions, values
 
-            def q(states: torch.Tensor, encoded: torch.Tensor) -> torch.Tensor:
+            def q(states: torch.Tensor, path: torch.Tensor, encoded: torch.Tensor) -> torch.Tensor:
                 decoded = self.dynamics.action_encoder.decode(encoded)
-                return self.lookahead.action_values(self.dynamics.phi, states, self.candidates, decoded)
+                return self.lookahead.action_values(self.dynamics.phi, states, decoded, path)
 
-            return self._ascend(at_points(q, obs), actions, values)
+            return self._ascend(at_points(q, obs, later), actions, values)
         step = self.greedy_step(obs)
         return step.actions, step.values
 

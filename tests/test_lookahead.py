@@ -62,6 +62,45 @@ def test_looking_ahead_pays_a_cost_now_for_a_reward_later(depth: int, action: fl
     assert chosen.tolist() == [[action], [action]]
 
 
+class Quadratic(StateFeatureMap):
+    """phi = [1, s, s^2]."""
+
+    width = 3
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return torch.cat([torch.ones(len(obs), 1), obs, obs.square()], dim=1)
+
+
+def test_the_best_path_open_loop_has_the_trees_value_and_its_slope_in_the_first_action() -> None:
+    # the refinement ascends the best path's value with its later actions held: at the path's first action it is
+    # the tree's L_d, and where the best path does not switch its slope is L_d's (the envelope theorem)
+    candidates = torch.linspace(-1, 1, 5).unsqueeze(1)
+    lookahead = planner(3, RewardSpec(lambda obs, a: -((obs[:, 0] - 0.3) ** 2) - 0.4 * a[:, 0] ** 2), width=3)
+    lookahead.value_weights = torch.tensor([0.5, 0.2, -0.3])
+    quadratic, obs = Quadratic(), torch.linspace(-2, 2, 9).unsqueeze(1)
+    actions, values, later = lookahead.greedy(quadratic, obs, candidates)
+    assert later.shape == (9, 2, 1) and bool((later != 0).any())  # later steps that move the state
+    torch.testing.assert_close(lookahead.action_values(quadratic, obs, actions, later), values, atol=1e-5, rtol=0)
+
+    def closed_loop(first: torch.Tensor) -> torch.Tensor:
+        next_obs, going_on, rewards = lookahead.transition(obs, first)
+        return rewards + 0.95 * going_on * lookahead.backed_up(quadratic, next_obs, candidates, 1).max(dim=1).values
+
+    h = 1e-3
+    slopes = [
+        (value(actions + h) - value(actions - h)) / (2 * h)
+        for value in (closed_loop, lambda first: lookahead.action_values(quadratic, obs, first, later))
+    ]
+    torch.testing.assert_close(slopes[1], slopes[0], atol=2e-3, rtol=0)
+    held_still = lookahead.action_values(quadratic, obs, actions + h, torch.zeros_like(later))
+    assert bool(
+        ((held_still - lookahead.action_values(quadratic, obs, actions - h, torch.zeros_like(later))) / (2 * h) - slopes[0])
+        .abs()
+        .max()
+        > 0.5
+    )
+
+
 def test_eq7_through_the_model_values_a_constant_reward_at_its_discounted_sum() -> None:
     never = RewardSpec(lambda obs, a: torch.ones(len(obs)), 0.0, lambda obs: obs[:, 0] > 100)  # known: it never ends
     lookahead = planner(1, never)
@@ -137,10 +176,10 @@ def test_six_dim_actions_act_greedily_through_the_observation_model_and_survive_
     np.testing.assert_array_equal(CMEPolicyIteration.load(tmp_path / "six.zip").predict(obs, deterministic=True)[0], actions)
 
 
-@pytest.mark.parametrize("depth", [1, 2])
+@pytest.mark.parametrize("depth", [1, 2, 3])
 def test_the_continuous_search_through_the_model_finds_a_known_maximiser_within_the_bounds(depth: int) -> None:
     # a known reward quadratic in a and a model that keeps s' = s: r(a*) is the best of every
-    # step, so the first action's backed-up value r(a) + gamma g max_b r(b) peaks at a*
+    # step, so the first action's backed-up value r(a) + sum_k gamma^k g max_b r(b) peaks at a*
     low = np.array([-2.0, -1.0, 0.0, -0.5, -3.0, 1.0], np.float32)
     high = np.array([2.0, 1.0, 1.0, 0.5, 3.0, 2.0], np.float32)
     best = torch.tensor([0.7, -0.4, 0.25, 0.5, -1.0, 1.6])  # the fourth on its upper bound
@@ -159,7 +198,8 @@ def test_the_continuous_search_through_the_model_finds_a_known_maximiser_within_
     assert bool((actions >= torch.as_tensor(low)).all() and (actions <= torch.as_tensor(high)).all())
     assert (actions - best).abs().max() < 0.03
     candidates = policy.candidates
-    later = 0.0 if depth == 1 else 0.95 * float(reward.step_reward(torch.zeros(len(candidates), 2), candidates).max())
+    best_candidate = float(reward.step_reward(torch.zeros(len(candidates), 2), candidates).max())
+    later = sum(0.95**k for k in range(1, depth)) * best_candidate
     torch.testing.assert_close(values, reward.step_reward(obs, actions) + later, atol=1e-4, rtol=0)
     np.testing.assert_allclose(policy.predict(obs.numpy(), deterministic=True)[0], actions.numpy(), atol=1e-6)
 
