@@ -408,7 +408,7 @@ class CMEPolicy(BasePolicy):
 
     def greedy(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The greedy actions and their Q values (with the lookahead: its actions and their looked-ahead
-        values): (N, obs_dim) -> (N, act_dim) or (N,), and (N,)."""
+        values; a refined first action's is its best path's, open loop): (N, obs_dim) -> (N, act_dim) or (N,), and (N,)."""
         if self.lookahead is not None:
             actions, values, later = self.lookahead.greedy(self.dynamics.phi, obs, self.candidates)
             if not self.refines:
