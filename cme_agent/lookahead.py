@@ -238,15 +238,11 @@ class LookaheadPlanner(nn.Module):
             value = rewards + self.gamma * going_on * value
         return value
 
-    def backed_up(self, phi: StateFeatureMap, obs: torch.Tensor, candidates: torch.Tensor, remaining: int) -> torch.Tensor:
-        """r + gamma g L_remaining(s^'_a) at every state and candidate: (N, obs_dim) -> (N, K)."""
-        return self.backed_up_paths(phi, obs, candidates, remaining)[0]
-
     def backed_up_paths(
         self, phi: StateFeatureMap, obs: torch.Tensor, candidates: torch.Tensor, remaining: int
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """:meth:`backed_up` and, after each state's candidate, the candidate indices of the best path of
-        the ``remaining`` steps below it: (N, obs_dim) -> (N, K), (N, K, remaining) int64."""
+        """r + gamma g L_remaining(s^'_a) at every state and candidate and, after each, the candidate indices of
+        the best path of the ``remaining`` steps below it: (N, obs_dim) -> (N, K), (N, K, remaining) int64."""
         next_obs, going_on, rewards = self.step(obs, candidates)
         if remaining == 0:
             tail, paths = blocked_values(phi, next_obs, self.value_weights), next_obs.new_empty(len(next_obs), 0).long()

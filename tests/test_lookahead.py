@@ -4,6 +4,8 @@ settings it refuses)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 import torch
@@ -84,21 +86,18 @@ def test_the_best_path_open_loop_has_the_trees_value_and_its_slope_in_the_first_
 
     def closed_loop(first: torch.Tensor) -> torch.Tensor:
         next_obs, going_on, rewards = lookahead.transition(obs, first)
-        return rewards + 0.95 * going_on * lookahead.backed_up(quadratic, next_obs, candidates, 1).max(dim=1).values
+        return rewards + 0.95 * going_on * lookahead.backed_up_paths(quadratic, next_obs, candidates, 1)[0].max(dim=1).values
+
+    def open_loop(path: torch.Tensor) -> Callable[[torch.Tensor], torch.Tensor]:
+        return lambda first: lookahead.action_values(quadratic, obs, first, path)
 
     h = 1e-3
-    slopes = [
+    tree, best_path, held_still = (
         (value(actions + h) - value(actions - h)) / (2 * h)
-        for value in (closed_loop, lambda first: lookahead.action_values(quadratic, obs, first, later))
-    ]
-    torch.testing.assert_close(slopes[1], slopes[0], atol=2e-3, rtol=0)
-    held_still = lookahead.action_values(quadratic, obs, actions + h, torch.zeros_like(later))
-    assert bool(
-        ((held_still - lookahead.action_values(quadratic, obs, actions - h, torch.zeros_like(later))) / (2 * h) - slopes[0])
-        .abs()
-        .max()
-        > 0.5
+        for value in (closed_loop, open_loop(later), open_loop(torch.zeros_like(later)))
     )
+    torch.testing.assert_close(best_path, tree, atol=2e-3, rtol=0)
+    assert bool((held_still - tree).abs().max() > 0.5)  # the later actions matter: holding the state still is off
 
 
 def test_eq7_through_the_model_values_a_constant_reward_at_its_discounted_sum() -> None:
@@ -237,7 +236,7 @@ def test_the_dashboards_show_the_lookahead_and_the_error_of_its_model() -> None:
     assert len(errors) > 0 and len(obs) == len(errors) and (errors >= 0).all()
     policy, state = model.policy, torch.tensor([[1.0, 0.0, 0.0]])
     _, values = policy.greedy(state.expand(4, 3))
-    expected = policy.lookahead.backed_up(model.dynamics.phi, state, policy.candidates, policy.lookahead.depth - 1)
+    expected = policy.lookahead.backed_up_paths(model.dynamics.phi, state, policy.candidates, policy.lookahead.depth - 1)[0]
     torch.testing.assert_close(values, expected.max(dim=1).values.expand(4))
 
 
